@@ -1,0 +1,69 @@
+"""jaxlens: gravitational lensing by a Schwarzschild black hole, in JAX.
+
+Units: the Schwarzschild radius R_S = 2GM/c^2 is 1; angles are radians.
+"""
+
+import importlib.metadata
+
+from ._exact import (
+    B_CRIT as B_CRIT,
+)
+from ._exact import (
+    CAPTURED as CAPTURED,
+)
+from ._exact import (
+    ESCAPED as ESCAPED,
+)
+from ._exact import (
+    R_PHOTON as R_PHOTON,
+)
+from ._exact import (
+    UNRESOLVED as UNRESOLVED,
+)
+from ._exact import (
+    carlson_rf as carlson_rf,
+)
+from ._exact import (
+    darwin_deflection as darwin_deflection,
+)
+from ._exact import (
+    impact_parameter as impact_parameter,
+)
+from ._exact import (
+    periapsis as periapsis,
+)
+from ._exact import (
+    shadow_angle as shadow_angle,
+)
+from ._exact import (
+    strong_field_deflection as strong_field_deflection,
+)
+from ._exact import (
+    weak_field_deflection as weak_field_deflection,
+)
+from ._trace import (
+    RK4 as RK4,
+)
+from ._trace import (
+    AbstractMethod as AbstractMethod,
+)
+from ._trace import (
+    DormandPrince as DormandPrince,
+)
+from ._trace import (
+    Euler as Euler,
+)
+from ._trace import (
+    Exact as Exact,
+)
+from ._trace import (
+    TraceResult as TraceResult,
+)
+from ._trace import (
+    trace as trace,
+)
+
+try:
+    __version__ = importlib.metadata.version("jaxlens")
+except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+    __version__ = "0.0.0"

@@ -1,0 +1,232 @@
+"""`trace`: camera rays -> escape angle and capture, the single source of truth for Phi."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from . import _exact, _orbit
+from ._exact import CAPTURED, ESCAPED, UNRESOLVED
+
+
+class TraceResult(eqx.Module):
+    """Outcome of tracing rays from a static camera.
+
+    **Fields:**
+    - `phi`: escape angle, the azimuth swept in the orbital plane from the camera
+      to the escaping asymptote (radians; $\\pi - \\alpha$ in flat space). For a
+      captured ray, the azimuth at which it crosses the horizon.
+    - `status`: `ESCAPED` (0), `CAPTURED` (1) or `UNRESOLVED` (2: beyond the
+      winding budget or the step budget; never painted as captured).
+    - `r_min`: smallest radius reached (units of R_S; 1 for captured rays).
+    """
+
+    phi: Float[Array, "..."]
+    status: Int[Array, "..."]
+    r_min: Float[Array, "..."]
+
+    @property
+    def captured(self):
+        """True where the ray falls into the horizon."""
+        return self.status == CAPTURED
+
+    @property
+    def escaped(self):
+        """True where the ray reaches infinity."""
+        return self.status == ESCAPED
+
+    @property
+    def unresolved(self):
+        """True where the ray ran out of its winding or step budget."""
+        return self.status == UNRESOLVED
+
+    @property
+    def half_turns(self):
+        """Number of completed half-turns, $\\lfloor \\phi / \\pi \\rfloor$."""
+        return jnp.floor(self.phi / jnp.pi).astype(jnp.int32)
+
+
+# ---------------------------------------------------------------------------
+# Methods. Each is a small immutable object: its settings fix the accuracy.
+
+
+class AbstractMethod(eqx.Module):
+    """A way to compute the escape angle of rays from a static camera."""
+
+    def __call__(self, alpha, distance, max_windings):
+        raise NotImplementedError
+
+
+class Exact(AbstractMethod):
+    """Closed form through Carlson's $R_F$; `iterations` duplication steps."""
+
+    iterations: int = eqx.field(static=True, default=12)
+
+    def __call__(self, alpha, distance, max_windings):
+        phi, status, r_min = _exact.escape_angle(
+            alpha, distance, iterations=self.iterations, max_windings=max_windings
+        )
+        return TraceResult(phi, status, r_min)
+
+
+class _Integrator(AbstractMethod):
+    def _run(self, alpha, distance, max_windings, scheme, dphi, tol, max_steps):
+        alpha, distance = jnp.broadcast_arrays(alpha, distance)
+        u0 = 1.0 / distance
+        root = u0 * jnp.sqrt((distance - 1.0) / distance)
+        sa = jnp.maximum(jnp.abs(jnp.sin(alpha)), jnp.finfo(alpha.dtype).tiny)
+        v0 = root * jnp.cos(alpha) / sa
+        # Rays exactly radial have v0 = +-inf; they are straight lines.
+        radial = sa < 1e-300 if alpha.dtype == jnp.float64 else sa < 1e-37
+        v0 = jnp.where(radial, 0.0, v0)
+        phi, outcome, r_min, _ = _orbit.integrate(
+            u0, v0, scheme=scheme, dphi=dphi, tol=tol, max_steps=max_steps
+        )
+        inward = jnp.cos(alpha) > 0
+        phi = jnp.where(radial, 0.0, phi)
+        outcome = jnp.where(radial, jnp.where(inward, 1, 0), outcome)
+        cap = 2.0 * jnp.pi * max_windings
+        over = (outcome == 2) | (phi > cap)
+        status = jnp.where(
+            over, UNRESOLVED, jnp.where(outcome == 1, CAPTURED, ESCAPED)
+        ).astype(jnp.int8)
+        r_min = jnp.where(status == CAPTURED, 1.0, jnp.minimum(r_min, distance))
+        return TraceResult(jnp.minimum(phi, cap), status, r_min.astype(alpha.dtype))
+
+
+class Euler(_Integrator):
+    """Semi-implicit Euler with fixed step `dphi` (radians): the original C++
+    program's scheme, kept for comparison. First order."""
+
+    dphi: float = eqx.field(static=True, default=0.003)
+    max_steps: int = eqx.field(static=True, default=50_000)
+
+    def __call__(self, alpha, distance, max_windings):
+        return self._run(
+            alpha, distance, max_windings, "euler", self.dphi, None, self.max_steps
+        )
+
+
+class RK4(_Integrator):
+    """Classical Runge-Kutta with fixed step `dphi` (radians). Fourth order."""
+
+    dphi: float = eqx.field(static=True, default=0.01)
+    max_steps: int = eqx.field(static=True, default=20_000)
+
+    def __call__(self, alpha, distance, max_windings):
+        return self._run(
+            alpha, distance, max_windings, "rk4", self.dphi, None, self.max_steps
+        )
+
+
+class DormandPrince(_Integrator):
+    """Adaptive Dormand-Prince 5(4), absolute tolerance `tol` per step."""
+
+    tol: float = eqx.field(static=True, default=1e-10)
+    max_steps: int = eqx.field(static=True, default=20_000)
+
+    def __call__(self, alpha, distance, max_windings):
+        return self._run(
+            alpha, distance, max_windings, "dopri5", 0.05, self.tol, self.max_steps
+        )
+
+
+# The accuracy ladder: measured by benchmarks/accuracy_ladder.py on moderate and
+# near-critical rays (D = 1.2 ... 1e5); each entry is the cheapest setting whose
+# max error in phi (float64, well-conditioned rays) stayed below the accuracy.
+_EXACT_LADDER = ((1e-3, 4), (1e-8, 5), (1e-13, 6))
+_RK4_ERR_COEF = 2.0  # max |error| ~ coef * dphi^4 (phi up to ~10 rad)
+_DOPRI_ERR_COEF = 1000.0  # max |error| ~ coef * tol (error per step accumulates)
+
+
+def exact_for(accuracy: float) -> Exact:
+    """The cheapest `Exact` setting whose measured error is below `accuracy` (radians)."""
+    for acc, n in _EXACT_LADDER:
+        if accuracy >= acc:
+            return Exact(iterations=n)
+    return Exact(iterations=7)
+
+
+def method_for(name: str, accuracy: float) -> AbstractMethod:
+    """Resolve a method name and a requested accuracy (radians) into a setting."""
+    if name in ("auto", "exact"):
+        return exact_for(accuracy)
+    if name == "euler":
+        return Euler()
+    if name == "rk4":
+        dphi = min(0.1, (accuracy / _RK4_ERR_COEF) ** 0.25)
+        return RK4(dphi=dphi, max_steps=int(math.ceil(200.0 / dphi)))
+    if name == "dopri5":
+        return DormandPrince(tol=max(accuracy / _DOPRI_ERR_COEF, 1e-14))
+    raise ValueError(
+        f"method={name!r} is not one of 'auto', 'exact', 'euler', 'rk4', 'dopri5' "
+        "(or an AbstractMethod instance)"
+    )
+
+
+def _check_distance(distance):
+    """ValueError for a concrete bad distance; eqx.error_if under jit."""
+    try:
+        d = np.asarray(distance)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        d = None
+    if d is not None:
+        bad = ~np.isfinite(d) | ~(d > 1.0)
+        if np.any(bad):
+            value = d[bad].flat[0]
+            raise ValueError(
+                f"distance={value!r} is not a valid camera radius: it must be "
+                "finite and > 1 (units of R_S, the horizon is at 1)"
+            )
+        return distance
+    return eqx.error_if(
+        distance,
+        ~jnp.isfinite(distance) | ~(distance > 1.0),
+        "distance must be finite and > 1 (units of R_S, the horizon is at 1)",
+    )
+
+
+def trace(
+    alpha: ArrayLike,
+    distance: ArrayLike,
+    *,
+    accuracy: float = 1e-6,
+    method: str | AbstractMethod = "auto",
+    max_windings: float = 10.0,
+) -> TraceResult:
+    """Trace rays from a static camera to their escape angle, or to capture.
+
+    **Arguments:**
+    - `alpha`: local angle of each ray from the inward radial direction, radians
+      in $[0, \\pi]$ (0 points at the hole, $\\pi$ straight away).
+    - `distance`: camera radius $D > 1$ (units of R_S). Broadcasts with `alpha`.
+    - `accuracy`: target absolute error of `phi` (radians); picks the cheapest
+      setting of the method that met it in the measured ladder. Rays within
+      relative $\\delta$ of the critical angle are limited by conditioning to
+      about $\\epsilon / \\delta$ whatever the method.
+    - `method`: `"auto"` (= `"exact"`), `"exact"`, `"euler"`, `"rk4"`,
+      `"dopri5"`, or an `AbstractMethod` instance (e.g. `RK4(dphi=0.01)`).
+    - `max_windings`: budget of windings; rays sweeping more than
+      $2\\pi \\times$ this are `UNRESOLVED`.
+
+    **Returns:** a `TraceResult` (`phi`, `status`, `r_min`, and the properties
+    `captured`, `escaped`, `unresolved`, `half_turns`) of the broadcast shape.
+
+    Works under `jit`, `vmap` and `grad` (both modes) for escaping rays, in
+    float32 and float64 (the dtype of the inputs; float64 needs
+    `jax_enable_x64`).
+    """
+    if not (accuracy > 0):
+        raise ValueError(f"accuracy={accuracy!r} must be > 0 (radians)")
+    if not max_windings > 0:
+        raise ValueError(f"max_windings={max_windings!r} must be > 0")
+    if isinstance(method, str):
+        method = method_for(method, accuracy)
+    distance = _check_distance(distance)
+    dtype = jnp.result_type(float, alpha, distance)
+    alpha = jnp.asarray(alpha, dtype)
+    distance = jnp.asarray(distance, dtype)
+    return method(alpha, distance, max_windings)
