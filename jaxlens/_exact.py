@@ -173,8 +173,8 @@ def complex_roots(b, kappa):
 
 def _integral_complex(x, y, dxy, xm, ym, u1, n, iterations):
     # int_y^x du / sqrt((u - u1)((u - m)^2 + n^2)), y < x, both > u1; dxy = x - y,
-    # xm = x - m, ym = y - m, each passed in a form without cancellation. Carlson's reduction with U_13 = conj(U_12); homogeneity takes
-    # out the factor x - y.
+    # xm = x - m, ym = y - m, each passed in a form without cancellation.
+    # Carlson's reduction with U_13 = conj(U_12); homogeneity takes out x - y.
     x1, y1 = jnp.sqrt(x - u1), jnp.sqrt(y - u1)
     xr, xi = _csqrt(xm, -n)
     yr, yi = _csqrt(ym, -n)
@@ -183,9 +183,7 @@ def _integral_complex(x, y, dxy, xm, ym, u1, n, iterations):
     # V12 = x1 * X2 * conj(Y2) + y1 * Y2 * conj(X2)
     pr, pi_ = xr * yr + xi * yi, xi * yr - xr * yi  # X2 conj(Y2)
     vr, vi = (x1 + y1) * pr, (x1 - y1) * pi_
-    rf = carlson_rf_conj(
-        vr * vr - vi * vi, 2.0 * vr * vi, v14 * v14, iterations=iterations
-    )
+    rf = carlson_rf_conj(vr * vr - vi * vi, 2.0 * vr * vi, v14 * v14, iterations=iterations)
     return 2.0 * dxy * rf
 
 
@@ -213,9 +211,7 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     alpha, distance = jnp.broadcast_arrays(alpha, distance)
     dtype = alpha.dtype
     u0 = 1.0 / distance
-    omu0 = (
-        distance - 1.0
-    ) / distance  # 1 - u0 without cancellation next to the horizon
+    omu0 = (distance - 1.0) / distance  # 1 - u0 without cancellation next to the horizon
     e0 = (3.0 - 2.0 * distance) / (3.0 * distance)  # u0 - 2/3, exact near D = 1.5
     sa, ca = jnp.abs(jnp.sin(alpha)), jnp.cos(alpha)
     root = u0 * jnp.sqrt(omu0)
@@ -253,11 +249,7 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     fac_q = jnp.where(outside, e3 - e0, e0 - e2)  # |q - u0|, no cancellation
     fac_q = jnp.where(turning, fac_q, 1.0)
     ys = sg / jnp.sqrt((u0 - u1) * fac_q)  # sqrt|u0 - rho|, signed as cos(alpha)
-    j_cam = (
-        2.0
-        * ys
-        * carlson_rf((u0 - u1) * d32, d_rp * d32, d_rp * fac_q, iterations=iterations)
-    )
+    j_cam = 2.0 * ys * carlson_rf((u0 - u1) * d32, d_rp * d32, d_rp * fac_q, iterations=iterations)
     phi_turn = jnp.where(outside, i_end + j_cam, i_end - j_cam)
 
     # --- b <= b_c: no turning point; out to the asymptote or in to the horizon.
@@ -306,11 +298,7 @@ def weak_field_deflection(b):
 
 def strong_field_deflection(b):
     """Strong-deflection limit (Bozza 2002) for $b \\to b_c^+$, radians."""
-    return (
-        -jnp.log(b / B_CRIT - 1.0)
-        + math.log(216.0 * (7.0 - 4.0 * math.sqrt(3.0)))
-        - jnp.pi
-    )
+    return -jnp.log(b / B_CRIT - 1.0) + math.log(216.0 * (7.0 - 4.0 * math.sqrt(3.0))) - jnp.pi
 
 
 def periapsis(b):

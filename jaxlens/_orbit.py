@@ -162,14 +162,10 @@ def integrate(u0, v0, *, scheme: str, dphi, tol=None, max_steps: int):
             dphi_end = _finish(u, v, target)
             move = accept & ~out
             phi = jnp.where(crossing, phi + dphi_end, jnp.where(move, phi + h, phi))
-            umax = jnp.maximum(
-                umax, jnp.where(move, u1, jnp.where(crossing, target, u))
-            )
+            umax = jnp.maximum(umax, jnp.where(move, u1, jnp.where(crossing, target, u)))
             u = jnp.where(move, u1, u)
             v = jnp.where(move, v1, v)
-            outcome = jnp.where(
-                crossing, jnp.where(target > 0, 1, 0).astype(jnp.int8), outcome
-            )
+            outcome = jnp.where(crossing, jnp.where(target > 0, 1, 0).astype(jnp.int8), outcome)
             return phi, u, v, h_next, outcome, n + 1, umax
 
         phi, _, _, _, outcome, n, umax = eqxi.while_loop(

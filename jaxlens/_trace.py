@@ -90,9 +90,9 @@ class _Integrator(AbstractMethod):
         outcome = jnp.where(radial, jnp.where(inward, 1, 0), outcome)
         cap = 2.0 * jnp.pi * max_windings
         over = (outcome == 2) | (phi > cap)
-        status = jnp.where(
-            over, UNRESOLVED, jnp.where(outcome == 1, CAPTURED, ESCAPED)
-        ).astype(jnp.int8)
+        status = jnp.where(over, UNRESOLVED, jnp.where(outcome == 1, CAPTURED, ESCAPED)).astype(
+            jnp.int8
+        )
         r_min = jnp.where(status == CAPTURED, 1.0, jnp.minimum(r_min, distance))
         return TraceResult(jnp.minimum(phi, cap), status, r_min.astype(alpha.dtype))
 
@@ -105,9 +105,7 @@ class Euler(_Integrator):
     max_steps: int = eqx.field(static=True, default=50_000)
 
     def __call__(self, alpha, distance, max_windings):
-        return self._run(
-            alpha, distance, max_windings, "euler", self.dphi, None, self.max_steps
-        )
+        return self._run(alpha, distance, max_windings, "euler", self.dphi, None, self.max_steps)
 
 
 class RK4(_Integrator):
@@ -117,9 +115,7 @@ class RK4(_Integrator):
     max_steps: int = eqx.field(static=True, default=20_000)
 
     def __call__(self, alpha, distance, max_windings):
-        return self._run(
-            alpha, distance, max_windings, "rk4", self.dphi, None, self.max_steps
-        )
+        return self._run(alpha, distance, max_windings, "rk4", self.dphi, None, self.max_steps)
 
 
 class DormandPrince(_Integrator):
@@ -129,9 +125,7 @@ class DormandPrince(_Integrator):
     max_steps: int = eqx.field(static=True, default=20_000)
 
     def __call__(self, alpha, distance, max_windings):
-        return self._run(
-            alpha, distance, max_windings, "dopri5", 0.05, self.tol, self.max_steps
-        )
+        return self._run(alpha, distance, max_windings, "dopri5", 0.05, self.tol, self.max_steps)
 
 
 # The accuracy ladder: measured by benchmarks/accuracy_ladder.py on moderate and
