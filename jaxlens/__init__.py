@@ -67,3 +67,33 @@ try:
     __version__ = importlib.metadata.version("jaxlens")
 except importlib.metadata.PackageNotFoundError:  # pragma: no cover
     __version__ = "0.0.0"
+
+from ._camera import Camera as Camera
+from ._camera import sky_direction as sky_direction
+from ._io import read_image as read_image
+from ._io import write_image as write_image
+from ._raymap import RayMap as RayMap
+from ._render import render as render
+from ._render import render_array as render_array
+from ._render import shade as shade
+from ._sky import (
+    AbstractSky as AbstractSky,
+)
+from ._sky import (
+    DefaultSky as DefaultSky,
+)
+from ._sky import (
+    GaussianStar as GaussianStar,
+)
+from ._sky import (
+    SkySum as SkySum,
+)
+from ._sky import (
+    Uniform as Uniform,
+)
+from ._sky import (
+    angular_distance as angular_distance,
+)
+from ._sky import (
+    direction_from_angles as direction_from_angles,
+)
