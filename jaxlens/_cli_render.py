@@ -25,9 +25,7 @@ def register(sub):
     p.add_argument("--distance", type=float, default=20.0, help="camera distance, R_S (default 20)")
     p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees")
     p.add_argument("--size", default="960x540", help="WxH in pixels (default 960x540)")
-    p.add_argument(
-        "--sky", default="default", help="star | default (default: procedural sky + star)"
-    )
+    p.add_argument("--sky", default="default", help="star | default (procedural sky + star)")
     p.add_argument("--star-sigma-deg", type=float, default=1.0, help="star Gaussian sigma, degrees")
     p.add_argument("--star-brightness", type=float, default=1.0, help="star peak brightness")
     p.add_argument("--floor", type=float, default=0.0, help="uniform sky level")
