@@ -57,6 +57,9 @@ from ._trace import (
     Exact as Exact,
 )
 from ._trace import (
+    Table as Table,
+)
+from ._trace import (
     TraceResult as TraceResult,
 )
 from ._trace import (

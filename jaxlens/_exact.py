@@ -62,9 +62,22 @@ def carlson_rf(x, y, z, *, iterations: int = 12):
     return _rf_series(a, dx * dy - dz * dz, dx * dy * dz)
 
 
+def _cbrt(x):
+    # Cube root of x > 0: exp(log(x)/3) and one Newton step (full precision).
+    # jnp.cbrt is avoided: fused with this module's other code, XLA:CPU (jaxlib
+    # 0.10.2) miscompiled its forward-mode derivative in vectorised loops.
+    y = jnp.exp(jnp.log(x) / 3.0)
+    return y - (y * y * y - x) / (3.0 * y * y)
+
+
+def _hypot(x, y):
+    # sqrt(x^2 + y^2) for the O(1)..O(1e6) magnitudes met here (see _cbrt).
+    return jnp.sqrt(x * x + y * y)
+
+
 def _csqrt(re, im):
     """Principal square root of re + i im in real arithmetic, without cancellation."""
-    r = jnp.hypot(re, im)
+    r = _hypot(re, im)
     big = jnp.sqrt(0.5 * (r + jnp.abs(re)))  # |the larger component|
     small = 0.5 * im / jnp.where(big > 0, big, 1.0)
     sgn = jnp.where(im < 0, -1.0, 1.0)
@@ -114,9 +127,12 @@ def shadow_angle(distance):
     hole; above $\\pi/2$ for $D < 1.5$.
     """
     d = jnp.asarray(distance)
+    u0 = 1.0 / d
     s = B_CRIT * jnp.sqrt((d - 1.0) / d) / d
-    a = jnp.arcsin(jnp.minimum(s, 1.0))
-    return jnp.where(d >= R_PHOTON, a, jnp.pi - a)
+    # cos(alpha_sh) = (2 - 3 u0) sqrt(1 + 3 u0) / 2 exactly (1 - s^2 factorises), so
+    # atan2 keeps full accuracy at D = 1.5, where asin(s) would lose half the digits.
+    c = (2.0 - 3.0 * u0) * jnp.sqrt(1.0 + 3.0 * u0) / 2.0
+    return jnp.arctan2(s, c)
 
 
 def real_roots(s, kappa):
@@ -162,7 +178,7 @@ def complex_roots(b, kappa):
     dc = -kappa / (B_CRIT * B_CRIT)  # c - 4/27 >= 0
     sqrt_delta = 0.5 * jnp.sqrt(c * dc)
     w = 0.5 * dc + sqrt_delta
-    a = jnp.cbrt(1.0 / 27.0 + w)
+    a = _cbrt(1.0 / 27.0 + w)
     bb = 1.0 / (9.0 * a)
     u1 = 1.0 / 3.0 - a - bb
     a3 = 27.0 * w / (9.0 * a * a + 3.0 * a + 1.0)  # 3a - 1
@@ -178,7 +194,7 @@ def _integral_complex(x, y, dxy, xm, ym, u1, n, iterations):
     x1, y1 = jnp.sqrt(x - u1), jnp.sqrt(y - u1)
     xr, xi = _csqrt(xm, -n)
     yr, yi = _csqrt(ym, -n)
-    ax, ay = jnp.hypot(xm, n), jnp.hypot(ym, n)  # |X2|^2, |Y2|^2
+    ax, ay = _hypot(xm, n), _hypot(ym, n)  # |X2|^2, |Y2|^2
     v14 = x1 * ay + y1 * ax
     # V12 = x1 * X2 * conj(Y2) + y1 * Y2 * conj(X2)
     pr, pi_ = xr * yr + xi * yi, xi * yr - xr * yi  # X2 conj(Y2)
@@ -187,8 +203,8 @@ def _integral_complex(x, y, dxy, xm, ym, u1, n, iterations):
     return 2.0 * dxy * rf
 
 
-def _small_b(x, y, dxy, b):
-    # int_y^x du / sqrt(1/b^2 - u^2 + u^3) for b -> 0: error O(b^5).
+def small_b_integral(x, y, dxy, b):
+    """$\\int_y^x du / \\sqrt{1/b^2 - u^2 + u^3}$ for $b \\to 0$ (`dxy` = x - y); error O(b^5)."""
     return b * (dxy - 0.5 * b * b * ((x**4 - y**4) / 4.0 - (x**3 - y**3) / 3.0))
 
 
@@ -263,7 +279,7 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     ym = jnp.where(inward, e0 - em, -2.0 / 3.0 - em)
     dxy = jnp.where(inward, omu0, u0)
     phi_free = _integral_complex(x, y, dxy, xm, ym, v1, n, iterations)
-    phi_small = _small_b(x, y, dxy, b)
+    phi_small = small_b_integral(x, y, dxy, b)
 
     phi = jnp.where(turning, phi_turn, jnp.where(small, phi_small, phi_free))
     captured = jnp.where(turning, ~outside, inward)

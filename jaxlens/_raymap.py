@@ -87,11 +87,13 @@ class RayMap(eqx.Module):
         dtau = (tau_hi - tau_lo) / (n - 1)
         tau = tau_lo + dtau * jnp.arange(n, dtype=d.dtype)
 
-        def phi_of_tau(t):
-            a = alpha_sh + jnp.exp(t)
+        gap = jnp.exp(tau)
+
+        def phi_of_alpha(a):
             return _exact.escape_angle(a, d, iterations=8, max_windings=1e6)[0]
 
-        phi, slope = jax.jvp(phi_of_tau, (tau,), (jnp.ones_like(tau),))
+        # d phi / d tau = (d phi / d alpha) (alpha - alpha_sh): one forward-mode pass.
+        phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + gap,), (gap,))
         return cls(d, alpha_sh, tau_lo, dtau, phi, slope, max_windings)
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:

@@ -1,0 +1,75 @@
+"""The ray-map table: interpolation error against the exact closed form, and gradients."""
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlens as jl
+
+EPS = np.finfo(np.float64).eps
+
+
+@functools.cache
+def _build(accuracy):
+    return jax.jit(lambda d: jl.RayMap.build(d, accuracy=accuracy))
+
+
+_exact = jax.jit(lambda a, d: jl.trace(a, d, method=jl.Exact(iterations=10)))
+
+
+@pytest.mark.parametrize("d", [1.0001, 1.2, 1.5, 3.0, 20.0, 1e3, 1e5, 1e8, 1e12])
+@pytest.mark.parametrize("accuracy", [1e-6, 1e-10])
+def test_table_matches_exact(d, accuracy):
+    rm = _build(accuracy)(d)
+    ash = float(rm.alpha_sh)
+    rng = np.random.default_rng(0)
+    alpha = np.concatenate(
+        [
+            ash + (math.pi - ash) * rng.uniform(0, 1, 3000),  # anywhere outside the shadow
+            ash * (1 + 10 ** rng.uniform(-12, 0, 3000)),  # grazing the shadow edge
+            ash * (1 - 10 ** rng.uniform(-12, -1, 500)),  # inside the shadow
+            [math.pi, math.pi / 2, ash],
+        ]
+    )
+    alpha = np.clip(alpha, 0.0, math.pi)
+    exact = _exact(alpha, d)
+    got = jax.jit(lambda r, a: r(a))(rm, alpha)
+    # status: the table decides by alpha vs alpha_sh; only alpha == alpha_sh may differ
+    same = np.asarray(got.status) == np.asarray(exact.status)
+    assert np.all(same | (alpha == ash))
+    esc = np.asarray(exact.escaped) & (alpha != ash)
+    err = np.abs(np.asarray(got.phi - exact.phi))[esc]
+    # Allowed: the requested accuracy plus the conditioning of phi near the edge.
+    cond = 3 * EPS * alpha[esc] / np.maximum(np.abs(alpha[esc] - ash), 1e-300)
+    assert np.all(err <= accuracy + cond)
+
+
+def test_table_gradient_wrt_distance():
+    # d phi / dD through the table (knots move with D) matches the exact closed form.
+    alpha = jnp.array([0.15, 0.3, 0.6, 1.2])
+
+    def table(d):
+        return jl.RayMap.build(d, accuracy=1e-10).escape_angle(alpha)
+
+    def exact(d):
+        return jl.trace(alpha, d, accuracy=1e-12).phi
+
+    np.testing.assert_allclose(jax.jacfwd(table)(20.0), jax.jacfwd(exact)(20.0), rtol=1e-6)
+    np.testing.assert_allclose(jax.jacrev(table)(20.0), jax.jacfwd(exact)(20.0), rtol=1e-6)
+
+
+def test_table_method_through_trace():
+    alpha = jnp.linspace(0.13, 3.0, 500)
+    a = jl.trace(alpha, 20.0, method="table", accuracy=1e-9)
+    b = jl.trace(alpha, 20.0, method="exact", accuracy=1e-12)
+    np.testing.assert_array_equal(np.asarray(a.status), np.asarray(b.status))
+    assert float(jnp.max(jnp.abs(a.phi - b.phi))) < 1e-9
+
+
+def test_table_needs_scalar_distance():
+    with pytest.raises(ValueError, match="scalar distance"):
+        jl.RayMap.build(jnp.array([10.0, 20.0]))
