@@ -1,0 +1,52 @@
+"""Run every benchmark, each in its own process; `make bench` calls this.
+
+    python benchmarks/run_all.py [--quick]
+
+`--quick` (about 3 minutes on 2 cores) uses fewer rays and settings; the full run
+(about 10 minutes) writes the tables the README shows. Results go to
+`benchmarks/results/`.
+"""
+
+import argparse
+import pathlib
+import subprocess
+import sys
+import time
+
+HERE = pathlib.Path(__file__).resolve().parent
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="fewer rays and settings")
+    p.add_argument(
+        "--only",
+        nargs="*",
+        choices=("accuracy_ladder", "scaling", "speedup"),
+        help="run only these benchmarks",
+    )
+    args = p.parse_args(argv)
+    plan = {
+        "speedup": ["--rays", "200000"] if args.quick else [],
+        "accuracy_ladder": ["--quick"] if args.quick else [],
+        "scaling": ["--quick"] if args.quick else [],
+    }
+    failed = []
+    for name, extra in plan.items():
+        if args.only and name not in args.only:
+            continue
+        print(f"=== {name} {' '.join(extra)}", flush=True)
+        t = time.perf_counter()
+        rc = subprocess.call([sys.executable, str(HERE / f"{name}.py"), *extra])
+        print(f"=== {name}: exit {rc} after {time.perf_counter() - t:.0f} s", flush=True)
+        if rc != 0:
+            failed.append(name)
+    if failed:
+        print(f"failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    print(f"results in {HERE / 'results'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
