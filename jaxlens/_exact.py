@@ -176,7 +176,8 @@ def complex_roots(b, kappa):
     """
     c = 1.0 / (b * b)
     dc = -kappa / (B_CRIT * B_CRIT)  # c - 4/27 >= 0
-    sqrt_delta = 0.5 * jnp.sqrt(c * dc)
+    # floored so that the critical ray b = b_c (dc = 0) keeps a finite gradient
+    sqrt_delta = 0.5 * jnp.sqrt(jnp.maximum(c * dc, jnp.finfo(c.dtype).tiny))
     w = 0.5 * dc + sqrt_delta
     a = _cbrt(1.0 / 27.0 + w)
     bb = 1.0 / (9.0 * a)
@@ -242,9 +243,10 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     # as (A - cos^2 alpha) / sin^2 alpha with A = (3u0 - 2)^2 (3u0 + 1) / 4, whose
     # two small parts cancel exactly for a camera near the photon sphere.
     a_ps = (3.0 * e0) ** 2 * (3.0 * u0 + 1.0) / 4.0
-    kappa_e = (a_ps - ca * ca) / (sa_ * sa_)
+    use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
+    kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
     kappa_b = (b_ - B_CRIT) * (b_ + B_CRIT) / (b_ * b_)
-    kappa = jnp.where(jnp.maximum(a_ps, ca * ca) < sa * sa, kappa_e, kappa_b)
+    kappa = jnp.where(use_e, kappa_e, kappa_b)
     turning = (kappa > 0) & ~small
     # Signed du/dphi at the camera: sqrt(G(u0)) = u0 sqrt(1 - u0) cot(alpha).
     sg = root * ca / sa_
@@ -269,7 +271,9 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     phi_turn = jnp.where(outside, i_end + j_cam, i_end - j_cam)
 
     # --- b <= b_c: no turning point; out to the asymptote or in to the horizon.
-    free = ~turning & ~small
+    # b == b_c exactly and inward: the orbit winds onto the photon sphere for ever.
+    critical = ~turning & ~small & inward & (kappa >= 0)
+    free = ~turning & ~small & ~critical
     kf = jnp.where(free, kappa, -1.0)
     bf = jnp.where(free, b_, 0.5 * B_CRIT)
     v1, em, n = complex_roots(bf, kf)
@@ -284,7 +288,7 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     phi = jnp.where(turning, phi_turn, jnp.where(small, phi_small, phi_free))
     captured = jnp.where(turning, ~outside, inward)
     cap = 2.0 * jnp.pi * max_windings
-    unresolved = ~(jnp.isfinite(phi) & (phi <= cap))
+    unresolved = critical | ~(jnp.isfinite(phi) & (phi <= cap))
     phi = jnp.where(unresolved, cap, phi)
     status = jnp.where(unresolved, UNRESOLVED, jnp.where(captured, CAPTURED, ESCAPED))
     periapsis_r = 1.0 / jnp.where(turning, u2, 1.0)
