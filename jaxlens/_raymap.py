@@ -49,6 +49,7 @@ class RayMap(eqx.Module):
     dtau: Float[Array, ""]
     phi: Float[Array, " n"]
     slope: Float[Array, " n"]
+    inner: tuple | None = None  # (tau0, dtau, phi, slope) of the captured side, if built
     max_windings: float = eqx.field(static=True, default=10.0)
 
     @classmethod
@@ -59,6 +60,7 @@ class RayMap(eqx.Module):
         accuracy: float = 1e-10,
         knots: int | None = None,
         max_windings: float = 10.0,
+        captured: bool = False,
     ) -> "RayMap":
         """Tabulate Phi(alpha) for a camera at `distance` (units of R_S, scalar).
 
@@ -67,59 +69,34 @@ class RayMap(eqx.Module):
         - `accuracy`: target interpolation error of phi (radians); sets the number
           of knots unless `knots` is given.
         - `max_windings`: rays sweeping more than $2\\pi\\times$ this are unresolved.
+        - `captured`: also tabulate the captured side (the azimuth at which a
+          captured ray crosses the horizon), as `trace` reports it.
         """
         d = jnp.asarray(distance, jnp.result_type(float, distance))
         if d.ndim != 0:
             raise ValueError(f"RayMap.build needs a scalar distance, got shape {d.shape}")
         alpha_sh = _exact.shadow_angle(d)
-        # tau range: from just outside the critical angle to alpha = pi.
-        tiny = jnp.finfo(d.dtype).tiny
-        # The last knot sits a hair short of alpha = pi, where |sin(alpha)| has its kink.
-        tau_hi = jnp.log(jnp.maximum(jnp.pi - alpha_sh, tiny)) - 1e-13
-        tau_lo = jnp.log(
-            jnp.maximum(alpha_sh * _REL_START, 1e-300 if d.dtype == jnp.float64 else 1e-37)
-        )
         if knots is None:
             # The span is at most ~ln(pi / (alpha_sh 1e-13)); alpha_sh >= b_c/D.
             span_bound = 30.0 + 2.0 * math.log(10.0) + 25.0
             knots = knots_for(accuracy, span_bound)
-        n = knots
-        dtau = (tau_hi - tau_lo) / (n - 1)
-        tau = tau_lo + dtau * jnp.arange(n, dtype=d.dtype)
-
-        gap = jnp.exp(tau)
-
-        def phi_of_alpha(a):
-            return _exact.escape_angle(a, d, iterations=8, max_windings=1e6)[0]
-
-        # d phi / d tau = (d phi / d alpha) (alpha - alpha_sh): one forward-mode pass.
-        phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + gap,), (gap,))
-        return cls(d, alpha_sh, tau_lo, dtau, phi, slope, max_windings)
+        outer = _tabulate(d, alpha_sh, jnp.pi - alpha_sh, +1.0, knots)
+        inner = _tabulate(d, alpha_sh, alpha_sh, -1.0, knots) if captured else None
+        return cls(d, alpha_sh, *outer, inner, max_windings)
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated escape angle (radians) at `alpha`; meaningful where
         `alpha > alpha_sh` (escaping rays), finite everywhere."""
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        n = self.phi.shape[0]
-        gap = alpha - self.alpha_sh
-        floor_gap = jnp.exp(self.tau0)
-        tau = jnp.log(jnp.maximum(gap, floor_gap))
-        s = (tau - self.tau0) / self.dtau
-        i = jnp.clip(jnp.floor(s).astype(jnp.int32), 0, n - 2)
-        t = jnp.maximum(s - i, 0.0)  # may pass 1 by ~1e-13 / dtau at alpha = pi
-        p0, p1 = self.phi[i], self.phi[i + 1]
-        m0, m1 = self.slope[i] * self.dtau, self.slope[i + 1] * self.dtau
-        t2 = t * t
-        t3 = t2 * t
-        h00 = 2.0 * t3 - 3.0 * t2 + 1.0
-        h10 = t3 - 2.0 * t2 + t
-        h01 = 3.0 * t2 - 2.0 * t3
-        h11 = t3 - t2
-        inside = h00 * p0 + h10 * m0 + h01 * p1 + h11 * m1
-        # Below the first knot: the logarithmic law, linear in tau.
-        gap_safe = jnp.where(gap > 0, gap, floor_gap)
-        below = self.phi[0] + self.slope[0] * (jnp.log(gap_safe) - self.tau0)
-        return jnp.where(gap < floor_gap, below, inside)
+        return _interpolate(alpha - self.alpha_sh, self.tau0, self.dtau, self.phi, self.slope)
+
+    def horizon_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
+        """Interpolated azimuth (radians) at which a captured ray ($\\alpha < \\alpha_{sh}$)
+        crosses the horizon; needs `build(..., captured=True)`."""
+        if self.inner is None:
+            raise ValueError("this RayMap was built without captured=True")
+        alpha = jnp.asarray(alpha, self.phi.dtype)
+        return _interpolate(self.alpha_sh - alpha, *self.inner)
 
     def __call__(self, alpha: ArrayLike):
         """Trace rays at local angles `alpha` (radians) through the table.
@@ -129,14 +106,56 @@ class RayMap(eqx.Module):
         from ._trace import TraceResult
 
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        phi = self.escape_angle(alpha)
         escaped = alpha > self.alpha_sh
+        inside = self.horizon_angle(alpha) if self.inner is not None else 0.0
+        phi = jnp.where(escaped, self.escape_angle(alpha), inside)
         cap = 2.0 * jnp.pi * self.max_windings
-        unresolved = (alpha == self.alpha_sh) | (escaped & ~(phi <= cap))
+        unresolved = (alpha == self.alpha_sh) | ~(phi <= cap)
         status = jnp.where(unresolved, UNRESOLVED, jnp.where(escaped, ESCAPED, CAPTURED))
-        phi = jnp.where(escaped & ~unresolved, phi, jnp.where(unresolved, cap, 0.0))
+        phi = jnp.where(unresolved, cap, phi)
         b = _exact.impact_parameter(alpha, self.distance)
         turning = escaped & (jnp.cos(alpha) > 0) & (b > _exact.B_CRIT)
         r0 = _exact.periapsis(jnp.where(turning, b, 2.0 * _exact.B_CRIT))
         r_min = jnp.where(turning, r0, jnp.where(escaped, self.distance, 1.0))
         return TraceResult(phi, status.astype(jnp.int8), r_min.astype(phi.dtype))
+
+
+def _tabulate(d, alpha_sh, span, sign, n):
+    # Knots uniform in tau = ln|alpha - alpha_sh| from 1e-13 alpha_sh to `span` (the
+    # last knot a hair short, where |sin(alpha)| has its kink at alpha = 0 or pi).
+    floor = 1e-300 if d.dtype == jnp.float64 else 1e-37
+    tau_hi = jnp.log(jnp.maximum(span, jnp.finfo(d.dtype).tiny)) - 1e-13
+    tau_lo = jnp.log(jnp.maximum(alpha_sh * _REL_START, floor))
+    dtau = (tau_hi - tau_lo) / (n - 1)
+    gap = jnp.exp(tau_lo + dtau * jnp.arange(n, dtype=d.dtype))
+
+    def phi_of_alpha(a):
+        return _exact.escape_angle(a, d, iterations=8, max_windings=1e6)[0]
+
+    # d phi / d tau = (d phi / d alpha) d alpha / d tau: one forward-mode pass.
+    phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + sign * gap,), (sign * gap,))
+    return tau_lo, dtau, phi, slope
+
+
+def _interpolate(gap, tau0, dtau, phi, slope):
+    # Cubic Hermite in tau = ln(gap) on the uniform knots; below the first knot the
+    # logarithmic law, linear in tau.
+    n = phi.shape[0]
+    floor_gap = jnp.exp(tau0)
+    tau = jnp.log(jnp.maximum(gap, floor_gap))
+    s = (tau - tau0) / dtau
+    i = jnp.clip(jnp.floor(s).astype(jnp.int32), 0, n - 2)
+    t = jnp.maximum(s - i, 0.0)  # may pass 1 by ~1e-13 / dtau at the far end
+    p0, p1 = phi[i], phi[i + 1]
+    m0, m1 = slope[i] * dtau, slope[i + 1] * dtau
+    t2 = t * t
+    t3 = t2 * t
+    inside = (
+        (2.0 * t3 - 3.0 * t2 + 1.0) * p0
+        + (t3 - 2.0 * t2 + t) * m0
+        + (3.0 * t2 - 2.0 * t3) * p1
+        + (t3 - t2) * m1
+    )
+    gap_safe = jnp.where(gap > 0, gap, floor_gap)
+    below = phi[0] + slope[0] * (jnp.log(gap_safe) - tau0)
+    return jnp.where(gap < floor_gap, below, inside)

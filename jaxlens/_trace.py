@@ -140,6 +140,11 @@ _RK4_ERR_COEF = 2.0  # max |error| ~ coef * dphi^4 (phi up to ~10 rad)
 _DOPRI_ERR_COEF = 1000.0  # max |error| ~ coef * tol (error per step accumulates)
 
 
+# With one distance and at least this many rays, "auto" builds a RayMap (two sides of
+# ~5,000 knots each at 1e-9: the cost of ~20,000 exact rays) and interpolates.
+_TABLE_MIN_RAYS = 50_000
+
+
 def exact_for(accuracy: float) -> Exact:
     """The cheapest `Exact` setting whose measured error is below `accuracy` (radians)."""
     for acc, n in _EXACT_LADDER:
@@ -162,7 +167,9 @@ class Table(AbstractMethod):
             distance = eqx.error_if(
                 d, jnp.any(distance != d), "method='table' needs one distance for all rays"
             )
-        ray_map = RayMap.build(distance, accuracy=self.accuracy, max_windings=max_windings)
+        ray_map = RayMap.build(
+            distance, accuracy=self.accuracy, max_windings=max_windings, captured=True
+        )
         return ray_map(alpha)
 
 
@@ -225,7 +232,8 @@ def trace(
       setting of the method that met it in the measured ladder. Rays within
       relative $\\delta$ of the critical angle are limited by conditioning to
       about $\\epsilon / \\delta$ whatever the method.
-    - `method`: `"auto"` (= `"exact"`), `"exact"`, `"table"` (one distance for all
+    - `method`: `"auto"` (`"table"` for one distance and >= 50,000 rays, else
+      `"exact"`), `"exact"`, `"table"` (one distance for all
       rays: interpolate a `RayMap`), `"euler"`, `"rk4"`, `"dopri5"`, or an
       `AbstractMethod` instance (e.g. `RK4(dphi=0.01)`).
     - `max_windings`: budget of windings; rays sweeping more than
@@ -242,10 +250,12 @@ def trace(
         raise ValueError(f"accuracy={accuracy!r} must be > 0 (radians)")
     if not max_windings > 0:
         raise ValueError(f"max_windings={max_windings!r} must be > 0")
-    if isinstance(method, str):
-        method = method_for(method, accuracy)
     distance = _check_distance(distance)
     dtype = jnp.result_type(float, alpha, distance)
     alpha = jnp.asarray(alpha, dtype)
     distance = jnp.asarray(distance, dtype)
+    if isinstance(method, str):
+        if method == "auto" and distance.ndim == 0 and alpha.size >= _TABLE_MIN_RAYS:
+            method = "table"  # many rays, one camera: tabulate once, interpolate
+        method = method_for(method, accuracy)
     return method(alpha, distance, max_windings)

@@ -73,3 +73,15 @@ def test_table_method_through_trace():
 def test_table_needs_scalar_distance():
     with pytest.raises(ValueError, match="scalar distance"):
         jl.RayMap.build(jnp.array([10.0, 20.0]))
+
+
+def test_auto_uses_the_table_for_many_rays_with_the_same_answers():
+    # One distance and >= 50,000 rays: 'auto' tabulates both sides; the captured side
+    # reports the horizon azimuth like the closed form does.
+    alpha = jnp.linspace(0.0, math.pi, 60_001)
+    auto = jax.jit(lambda a: jl.trace(a, 20.0, accuracy=1e-9))(alpha)
+    exact = _exact(alpha, 20.0)
+    ash = float(jl.shadow_angle(20.0))
+    ok = np.abs(np.asarray(alpha) - ash) > 1e-6 * ash  # conditioning allows ~2e-10 there
+    np.testing.assert_array_equal(np.asarray(auto.status)[ok], np.asarray(exact.status)[ok])
+    assert float(jnp.max(jnp.abs(auto.phi - exact.phi)[ok])) < 1e-9
