@@ -1,45 +1,114 @@
 """A static pinhole camera at radius D looking at the hole (PHYSICS.md conventions).
 
-World frame: the hole at the origin, the camera on the $-z$ axis, so $+z$ points from
-the camera through the hole ("behind the hole"); $x$ to the right and $y$ up in the
-image when yaw = pitch = roll = 0.
+Two frames:
+
+- the **camera frame**: the hole at the origin, the camera on the $-z$ axis, so $+z$
+  points from the camera through the hole; $x$ to the right and $y$ up in the image
+  when yaw = pitch = roll = 0. The ray map works here: a ray's local angle alpha is
+  measured from $+z$ and its orbital plane contains the $z$ axis.
+- the **world frame** (the sky's): the camera frame turned by the camera's position
+  around the hole (`azimuth`, `elevation`). With both zero the frames coincide and
+  $+z$ is "behind the hole".
+
+Moving a static camera around the hole at fixed distance only turns the sky (spherical
+symmetry), so an orbit costs nothing more than a rotation of the sky directions.
 """
 
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._fastmath import arctan2, sin_cos
+
 
 def _concrete(x):
+    """The value of `x` as a NumPy array, or None for a tracer."""
+    if isinstance(x, jax.core.Tracer):
+        return None
     try:
         return np.asarray(x)
-    except Exception:  # a tracer: checked by the caller with eqx.error_if if at all
+    except Exception:  # pragma: no cover - other abstract values
         return None
 
 
+def _is_zero(x) -> bool:
+    """True when `x` is concretely zero (host-side decision; False for tracers)."""
+    c = _concrete(x)
+    return c is not None and bool(np.all(c == 0))
+
+
+def rotation_matrix(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> Float[Array, "3 3"]:
+    """Rotation $R = R_y(\\mathrm{yaw})\\,R_x(-\\mathrm{pitch})\\,R_z(\\mathrm{roll})$ (radians).
+
+    It maps $+z$ to the direction at longitude yaw, latitude pitch (the convention of
+    `direction_from_angles`), and turns $+x$ toward $+y$ by roll first.
+
+    **Returns:** a `(3, 3)` array in the dtype of the angles.
+    """
+    yaw, pitch, roll = jnp.broadcast_arrays(
+        *(jnp.asarray(a, jnp.result_type(float, yaw, pitch, roll)) for a in (yaw, pitch, roll))
+    )
+    cy, sy = jnp.cos(yaw), jnp.sin(yaw)
+    cp, sp = jnp.cos(pitch), jnp.sin(pitch)
+    cr, sr = jnp.cos(roll), jnp.sin(roll)
+    one, zero = jnp.ones_like(cy), jnp.zeros_like(cy)
+    r_yaw = jnp.stack(
+        [jnp.stack([cy, zero, sy]), jnp.stack([zero, one, zero]), jnp.stack([-sy, zero, cy])]
+    )
+    r_pitch = jnp.stack(
+        [jnp.stack([one, zero, zero]), jnp.stack([zero, cp, sp]), jnp.stack([zero, -sp, cp])]
+    )
+    r_roll = jnp.stack(
+        [jnp.stack([cr, -sr, zero]), jnp.stack([sr, cr, zero]), jnp.stack([zero, zero, one])]
+    )
+    return r_yaw @ r_pitch @ r_roll
+
+
+def rotate(m: Float[Array, "3 3"], n: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """`m @ n` for a stack of 3-vectors `n (..., 3)`, written as three FMAs a component."""
+    m = m.astype(n.dtype)
+    x, y, z = n[..., 0], n[..., 1], n[..., 2]
+    return jnp.stack([m[i, 0] * x + m[i, 1] * y + m[i, 2] * z for i in range(3)], axis=-1)
+
+
+def _float(x, dtype=None):
+    return jnp.asarray(x, dtype=dtype if dtype is not None else jnp.result_type(float, x))
+
+
 class Camera(eqx.Module):
-    """Pinhole camera of a static observer at radius `distance`.
+    """Pinhole camera of a static observer at radius `distance` (PHYSICS.md, "Pixels").
 
     **Fields:**
     - `distance`: camera radius $D > 1$ (units of R_S).
     - `fov`: horizontal field of view (radians, $0 < $ fov $< \\pi$).
     - `width`, `height`: image size in pixels (static).
-    - `yaw`, `pitch`, `roll`: orientation (radians); yaw turns the view to the
-      right (+x), pitch up (+y), roll about the line of sight. All zero: the hole
-      is at the image centre.
+    - `yaw`, `pitch`, `roll`: orientation of the view (radians); yaw turns the view to
+      the right (+x), pitch up (+y), roll turns the image about the line of sight
+      (counter-clockwise). All zero: the hole sits at the image centre.
+    - `azimuth`, `elevation`: the camera's position on its sphere of radius $D$
+      (radians): the camera sits opposite the sky direction at longitude `azimuth`,
+      latitude `elevation`, and (with zero yaw/pitch) looks at the hole and that sky
+      direction behind it. Sweeping `azimuth` orbits the camera around the hole.
     - `supersample`: area sampling with $k \\times k$ samples a pixel (static).
+
+    Every array field may carry one leading batch axis (all of the same length, see
+    `stack_cameras`) to describe a batch of cameras for `render_frames` or
+    `jax.vmap`.
     """
 
-    distance: Float[Array, ""]
-    fov: Float[Array, ""]
+    distance: Float[Array, "*batch"]
+    fov: Float[Array, "*batch"]
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
-    yaw: Float[Array, ""]
-    pitch: Float[Array, ""]
-    roll: Float[Array, ""]
+    yaw: Float[Array, "*batch"]
+    pitch: Float[Array, "*batch"]
+    roll: Float[Array, "*batch"]
+    azimuth: Float[Array, "*batch"]
+    elevation: Float[Array, "*batch"]
     supersample: int = eqx.field(static=True)
 
     def __init__(
@@ -52,98 +121,222 @@ class Camera(eqx.Module):
         yaw: ArrayLike = 0.0,
         pitch: ArrayLike = 0.0,
         roll: ArrayLike = 0.0,
+        azimuth: ArrayLike = 0.0,
+        elevation: ArrayLike = 0.0,
         supersample: int = 1,
+        dtype=None,
     ):
-        self.distance = jnp.asarray(distance, dtype=jnp.result_type(float, distance))
-        self.fov = jnp.asarray(fov, dtype=jnp.result_type(float, fov))
+        """**Arguments:** as the fields; `dtype`: float dtype of the array fields
+        (default: that of `distance` and `fov`, float64 for Python floats when
+        `jax_enable_x64` is on)."""
+        if dtype is None:
+            dtype = jnp.result_type(float, distance, fov)
+        self.distance = _float(distance, dtype)
+        self.fov = _float(fov, dtype)
+        for name in ("width", "height", "supersample"):
+            v = locals()[name]
+            if isinstance(v, bool) or not float(v).is_integer():
+                raise ValueError(f"{name}={v!r} must be a positive whole number")
         self.width = int(width)
         self.height = int(height)
-        self.yaw = jnp.asarray(yaw, dtype=self.fov.dtype)
-        self.pitch = jnp.asarray(pitch, dtype=self.fov.dtype)
-        self.roll = jnp.asarray(roll, dtype=self.fov.dtype)
+        self.yaw = _float(yaw, dtype)
+        self.pitch = _float(pitch, dtype)
+        self.roll = _float(roll, dtype)
+        self.azimuth = _float(azimuth, dtype)
+        self.elevation = _float(elevation, dtype)
         self.supersample = int(supersample)
 
     def __check_init__(self):
         for name in ("width", "height", "supersample"):
             v = getattr(self, name)
             if v < 1:
-                raise ValueError(f"{name}={v} must be a positive whole number")
+                raise ValueError(f"{name}={v} must be a positive whole number (pixels)")
         d = _concrete(self.distance)
         if d is not None and (not np.all(np.isfinite(d)) or not np.all(d > 1.0)):
-            raise ValueError(f"distance={d!r} must be finite and > 1 (units of R_S, horizon at 1)")
+            bad = d[~(np.isfinite(d) & (d > 1.0))] if d.ndim else d
+            raise ValueError(
+                f"distance={float(bad.flat[0])!r} is not a valid camera radius: it must be finite "
+                "and > 1 (units of R_S, the horizon is at 1)"
+            )
         f = _concrete(self.fov)
         if f is not None and (not np.all(np.isfinite(f)) or not np.all((f > 0) & (f < math.pi))):
-            raise ValueError(f"fov={np.degrees(f)!r} degrees must be in (0, 180) degrees")
+            bad = f[~(np.isfinite(f) & (f > 0) & (f < math.pi))] if f.ndim else f
+            raise ValueError(
+                f"fov={float(np.degrees(bad.flat[0]))!r} degrees is not a valid field of view: it "
+                "must be in (0, 180) degrees"
+            )
+        for name in ("yaw", "pitch", "roll", "azimuth", "elevation"):
+            a = _concrete(getattr(self, name))
+            if a is not None and not np.all(np.isfinite(a)):
+                raise ValueError(f"{name}={a.tolist()!r} must be finite (radians)")
+
+    # ------------------------------------------------------------------ geometry
 
     @property
-    def focal(self) -> Float[Array, ""]:
+    def batch_shape(self) -> tuple[int, ...]:
+        """Shape of the batch of cameras (`()` for one camera)."""
+        return jnp.shape(self.distance)
+
+    @property
+    def focal(self) -> Float[Array, "*batch"]:
         """Focal length in pixels: $(W/2) / \\tan(\\mathrm{FOV}/2)$."""
         return (0.5 * self.width) / jnp.tan(0.5 * self.fov)
 
-    def sample_xy(self, row0=0, rows: int | None = None):
+    @property
+    def dtype(self):
+        """Float dtype of the camera's arrays (the render computes in it)."""
+        return self.fov.dtype
+
+    def is_centred(self) -> bool:
+        """True when yaw, pitch and roll are concretely zero (host-side; False for
+        tracers): the hole sits at the image centre and the image has the mirror
+        symmetries the fast render path uses."""
+        return all(_is_zero(a) for a in (self.yaw, self.pitch, self.roll))
+
+    def at_origin(self) -> bool:
+        """True when azimuth and elevation are concretely zero (host-side): the
+        camera frame is the world frame."""
+        return _is_zero(self.azimuth) and _is_zero(self.elevation)
+
+    def sample_x(self) -> Float[Array, " Wk"]:
+        """Image-plane $x$ of the sample columns, left to right (pixels):
+        column $i$, sub-sample $m$ at $x = i + (m + 1/2)/k - W/2$."""
+        k = self.supersample
+        sub = (jnp.arange(k, dtype=self.dtype) + 0.5) / k
+        col = jnp.arange(self.width, dtype=self.dtype)[:, None] + sub[None, :]
+        return (col - 0.5 * self.width).reshape(-1)
+
+    def sample_y(self, row0: ArrayLike = 0, rows: int | None = None) -> Float[Array, " Rk"]:
+        """Image-plane $y$ of the sample rows of pixel rows `row0 .. row0+rows`, top to
+        bottom (pixels): row $j$, sub-sample $n$ at $y = H/2 - j - (n + 1/2)/k$."""
+        rows = self.height if rows is None else rows
+        k = self.supersample
+        sub = (jnp.arange(k, dtype=self.dtype) + 0.5) / k
+        row = (jnp.asarray(row0, self.dtype) + jnp.arange(rows, dtype=self.dtype))[:, None] + sub
+        return (0.5 * self.height - row).reshape(-1)
+
+    def sample_xy(self, row0: ArrayLike = 0, rows: int | None = None):
         """Image-plane coordinates of the area samples of rows `row0 .. row0+rows`.
 
         Pixel (i, j) has its centre at $x = i + 0.5 - W/2$, $y = H/2 - (j + 0.5)$;
         sample (m, n) of $k \\times k$ sits at column $i + (m + 0.5)/k$, row
         $j + (n + 0.5)/k$.
 
-        **Returns:** `x, y` of shape `(rows, W, k*k)` (pixels).
+        **Returns:** `x, y` of shape `(rows, W, k*k)` (pixels), sample index
+        $n k + m$.
         """
         rows = self.height if rows is None else rows
         k = self.supersample
-        dtype = self.fov.dtype
-        sub = (jnp.arange(k, dtype=dtype) + 0.5) / k
-        col = jnp.arange(self.width, dtype=dtype)[:, None] + sub[None, :]  # (W, k)
-        row = (jnp.asarray(row0, dtype) + jnp.arange(rows, dtype=dtype))[:, None] + sub
-        x = col - 0.5 * self.width  # (W, k): sample column offset from the left edge
-        y = 0.5 * self.height - row  # (rows, k)
+        x = self.sample_x().reshape(self.width, k)
+        y = self.sample_y(row0, rows).reshape(rows, k)
         xs = jnp.broadcast_to(x[None, :, None, :], (rows, self.width, k, k))
         ys = jnp.broadcast_to(y[:, None, :, None], (rows, self.width, k, k))
         return xs.reshape(rows, self.width, k * k), ys.reshape(rows, self.width, k * k)
 
     def rotation(self) -> Float[Array, "3 3"]:
-        """Camera-to-world rotation: roll about the view axis, then pitch, then yaw."""
-        cy, sy = jnp.cos(self.yaw), jnp.sin(self.yaw)
-        cp, sp = jnp.cos(self.pitch), jnp.sin(self.pitch)
-        cr, sr = jnp.cos(self.roll), jnp.sin(self.roll)
-        one, zero = jnp.ones_like(cy), jnp.zeros_like(cy)
-        r_yaw = jnp.array([[cy, zero, sy], [zero, one, zero], [-sy, zero, cy]])
-        r_pitch = jnp.array([[one, zero, zero], [zero, cp, sp], [zero, -sp, cp]])
-        r_roll = jnp.array([[cr, -sr, zero], [sr, cr, zero], [zero, zero, one]])
-        return r_yaw @ r_pitch @ r_roll
+        """View rotation (camera-frame directions of the image axes): roll about the
+        view axis, then pitch, then yaw (`rotation_matrix`)."""
+        return rotation_matrix(self.yaw, self.pitch, self.roll)
 
-    def rays(self, row0=0, rows: int | None = None):
+    def position_rotation(self) -> Float[Array, "3 3"]:
+        """Camera frame to world frame: maps $+z$ to the sky direction behind the hole
+        at longitude `azimuth`, latitude `elevation`."""
+        return rotation_matrix(self.azimuth, self.elevation, jnp.zeros_like(self.azimuth))
+
+    def rays(self, row0: ArrayLike = 0, rows: int | None = None):
         """Local angles of the samples of rows `row0 .. row0+rows`.
 
         **Returns:** `alpha` (angle from the direction of the hole, radians),
         `cos_beta`, `sin_beta` (the orbital plane: the ray's direction across the
-        line of sight), each of shape `(rows, W, k*k)`.
+        line of sight, camera frame), each of shape `(rows, W, k*k)`.
         """
         x, y = self.sample_xy(row0, rows)
+        return self._angles(x, y, oriented=not self.is_centred())
+
+    def _angles(self, x, y, *, oriented: bool):
         f = self.focal
-        oriented = not all(
-            (c := _concrete(a)) is not None and np.all(c == 0)
-            for a in (self.yaw, self.pitch, self.roll)
-        )
         if oriented:
             rot = self.rotation()
             dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * f
             dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * f
             dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * f
         else:
-            dx, dy, dz = x, y, jnp.broadcast_to(f, x.shape)
+            dx, dy, dz = x, y, jnp.broadcast_to(f, jnp.shape(x))
         rho = jnp.hypot(dx, dy)
-        alpha = jnp.arctan2(rho, dz)
+        alpha = arctan2(rho, dz)
         safe = rho > 0
         rho_ = jnp.where(safe, rho, 1.0)
         return alpha, jnp.where(safe, dx / rho_, 1.0), jnp.where(safe, dy / rho_, 0.0)
 
+    def to_world(self, n: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+        """Camera-frame directions to world (sky) directions."""
+        return rotate(self.position_rotation(), n)
+
 
 def sky_direction(phi, cos_beta, sin_beta):
-    """World direction of the escaping asymptote: angle `phi` from the hole-to-camera
-    axis ($-z$) in the plane picked by beta.
+    """Camera-frame direction of the escaping asymptote: angle `phi` from the
+    hole-to-camera axis ($-z$) in the plane picked by beta.
 
     **Returns:** unit vectors `(..., 3)`; $+z$ (behind the hole) where $\\phi = \\pi$.
     """
-    s, c = jnp.sin(phi), jnp.cos(phi)
+    s, c = sin_cos(phi)
     return jnp.stack([s * cos_beta, s * sin_beta, -c], axis=-1)
+
+
+# ---------------------------------------------------------------------- batches
+
+
+def stack_cameras(cameras) -> Camera:
+    """One batched `Camera` from a sequence of cameras of the same size and
+    supersampling: every array field gets a leading axis.
+
+    **Returns:** a `Camera` whose `batch_shape` is `(len(cameras),)`.
+    """
+    cameras = list(cameras)
+    if not cameras:
+        raise ValueError("stack_cameras needs at least one camera")
+    first = cameras[0]
+    for c in cameras[1:]:
+        if (c.width, c.height, c.supersample) != (first.width, first.height, first.supersample):
+            raise ValueError(
+                "cameras of one batch must share width, height and supersample, got "
+                f"{(c.width, c.height, c.supersample)} and "
+                f"{(first.width, first.height, first.supersample)}"
+            )
+    return jax.tree.map(lambda *a: jnp.stack(a), *cameras)
+
+
+def _sweep(camera: Camera, name: str, values) -> Camera:
+    values = jnp.asarray(values, camera.dtype)
+    if values.ndim != 1 or values.shape[0] < 1:
+        raise ValueError(
+            f"{name} values must be a non-empty 1-D sequence, got shape {values.shape}"
+        )
+    n = values.shape[0]
+    batched = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,)), camera)
+    out = eqx.tree_at(lambda c: getattr(c, name), batched, values)
+    out.__check_init__()
+    return out
+
+
+def approach(camera: Camera, distances) -> Camera:
+    """A batch of `camera` at each of `distances` (units of R_S): a fall toward the
+    hole, e.g. `np.geomspace(1e5, 3, 48)`."""
+    return _sweep(camera, "distance", distances)
+
+
+def orbit(camera: Camera, azimuths) -> Camera:
+    """A batch of `camera` at each of the positions `azimuths` (radians) around the
+    hole at fixed distance, looking at the hole: e.g. `np.linspace(0, 2 pi, 36)`."""
+    return _sweep(camera, "azimuth", azimuths)
+
+
+def pan(camera: Camera, yaws) -> Camera:
+    """A batch of `camera` turned by each of `yaws` (radians) in place: the hole
+    sweeps across the view."""
+    return _sweep(camera, "yaw", yaws)
+
+
+def zoom(camera: Camera, fovs) -> Camera:
+    """A batch of `camera` with each horizontal field of view of `fovs` (radians)."""
+    return _sweep(camera, "fov", fovs)
