@@ -1,5 +1,13 @@
-"""Image files through OpenImageIO: plain Python at the edges, never jitted."""
+"""Image files through OpenImageIO (and animated GIFs through Pillow): plain Python at
+the edges, never jitted.
 
+Every file is written atomically: to a hidden temporary file in the destination
+folder, which is renamed over the destination (`os.replace`) only once it is complete,
+and removed on any failure, Ctrl-C included. A reader never sees a half-written file.
+"""
+
+import contextlib
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -7,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 FLOAT_FORMATS = {".exr", ".hdr", ".tif", ".tiff"}
+DISPLAY_FORMATS = {".png", ".jpg", ".jpeg"}
+WRITE_FORMATS = FLOAT_FORMATS | DISPLAY_FORMATS
 
 
 def _oiio():
@@ -16,79 +26,203 @@ def _oiio():
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function on linear values in [0, 1]."""
-    x = np.clip(linear, 0.0, 1.0)
+    """The sRGB transfer function (IEC 61966-2-1) on linear values, clipped to [0, 1]."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, np.float32), nan=0.0), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    """Inverse of `srgb_encode`: sRGB-encoded values in [0, 1] to linear."""
+    x = np.asarray(encoded, np.float32)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def to_display(image: np.ndarray, *, exposure: float = 0.0) -> np.ndarray:
+    """Linear radiance to 8-bit sRGB for display: scale by $2^{exposure}$, clip, encode.
+
+    **Returns:** `uint8` array of the same shape.
+    """
+    img = np.asarray(image, np.float32) * np.float32(2.0**exposure)
+    return np.round(srgb_encode(img) * 255.0).astype(np.uint8)
+
+
+def check_output_path(path) -> Path:
+    """Check that `path` can be written: a supported image extension and an existing,
+    writable folder. Raises `ValueError` naming the path otherwise.
+
+    **Returns:** `path` as a `Path`.
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in WRITE_FORMATS | {".gif"}:
+        valid = ", ".join(sorted(WRITE_FORMATS | {".gif"}))
+        raise ValueError(f"output {str(path)!r} has an unsupported extension {ext!r}; use one of "
+                         f"{valid}")  # fmt: skip
+    folder = path.parent
+    if not folder.is_dir():
+        raise ValueError(f"output folder {str(folder)!r} of {str(path)!r} does not exist")
+    if path.is_dir():
+        raise ValueError(f"output {str(path)!r} is a folder, not a file name")
+    try:  # the real test of writability (also on read-only mounts, and for root)
+        fd, probe = tempfile.mkstemp(prefix=".jaxlens-probe.", dir=folder)
+    except OSError as e:
+        raise ValueError(f"output folder {str(folder)!r} is not writable: {e.strerror}") from None
+    os.close(fd)
+    os.unlink(probe)
+    return path
+
+
+@contextlib.contextmanager
+def atomic_output(path):
+    """Context manager: yields a temporary path beside `path`; on a normal exit it
+    is renamed to `path`, on any exception (KeyboardInterrupt too) it is removed."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def _for_format(img: np.ndarray, ext: str) -> np.ndarray:
+    """Adapt the channel count to what the format stores: HDR (RGBE) holds RGB only,
+    JPEG grey or RGB; PNG, EXR and TIFF take 1 to 4 channels as they are."""
+    c = img.shape[-1]
+    if ext == ".hdr" or ext in (".jpg", ".jpeg"):
+        if c == 2:  # grey + alpha
+            img = img[..., :1]
+        elif c == 4:  # RGBA
+            img = img[..., :3]
+        if ext == ".hdr" and img.shape[-1] == 1:
+            img = np.repeat(img, 3, axis=-1)
+    return img
 
 
 def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     """Write a linear float image, atomically (a temporary file, then a rename).
 
-    EXR/HDR/TIFF keep linear floats (scaled by $2^{exposure}$); PNG/JPEG get the
-    exposure, the sRGB transfer and 8 bits. Never leaves a half-written file.
+    EXR, HDR and TIFF keep the linear floats as they are (32-bit float; HDR is RGBE);
+    PNG and JPEG get the exposure ($2^{exposure}$), the sRGB transfer and 8 bits.
+    Never leaves a half-written file, also when interrupted.
 
-    **Arguments:** `path`; `image`: `(H, W)` or `(H, W, C)` linear radiance;
-    `exposure`: stops.
+    **Arguments:** `path` (its extension picks the format); `image`: `(H, W)` or
+    `(H, W, C)` linear radiance with 1 to 4 channels; `exposure`: stops (PNG/JPEG).
 
-    **Returns:** the path written.
+    **Returns:** the path written. Raises `ValueError` for an unusable path or image.
     """
     oiio = _oiio()
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ValueError(f"output folder {str(folder)!r} does not exist")
-    if not os.access(folder, os.W_OK):
-        raise ValueError(f"output folder {str(folder)!r} is not writable")
+    path = check_output_path(path)
     ext = path.suffix.lower()
+    if ext == ".gif":
+        raise ValueError(f"{str(path)!r}: write GIF animations with write_gif")
     img = np.asarray(image, np.float32)
     if img.ndim == 2:
         img = img[..., None]
-    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4):
+    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4) or min(img.shape[:2]) < 1:
         raise ValueError(f"image of shape {img.shape} is not (H, W) or (H, W, 1..4)")
-    img = img * np.float32(2.0**exposure)
+    if not np.isfinite(exposure):
+        raise ValueError(f"exposure={exposure!r} must be finite (stops)")
+    img = _for_format(img, ext)
     if ext in FLOAT_FORMATS:
-        data, fmt = img, oiio.FLOAT if ext != ".hdr" else oiio.FLOAT
+        data, fmt, space = np.ascontiguousarray(img), oiio.FLOAT, "lin_rec709"
     else:
-        data, fmt = np.round(srgb_encode(img) * 255.0).astype(np.uint8), oiio.UINT8
+        data, fmt, space = to_display(img, exposure=exposure), oiio.UINT8, "sRGB"
     h, w, c = data.shape
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=folder)
-    os.close(fd)
-    try:
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if c == 2:
+        spec.channelnames = ("Y", "A")
+        spec.alpha_channel = 1
+    spec.attribute("oiio:ColorSpace", space)
+    spec.attribute("Software", "jaxlens")
+    with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise ValueError(f"cannot write images of type {ext!r}: {oiio.geterror()}")
-        spec = oiio.ImageSpec(w, h, c, fmt)
-        if not out.open(tmp, spec) or not out.write_image(data) or not out.close():
-            raise OSError(f"writing {str(path)!r} failed: {out.geterror()}")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        ok = out.open(tmp, spec) and out.write_image(data)
+        ok = out.close() and ok
+        if not ok:
+            raise OSError(f"writing {str(path)!r} failed: {out.geterror() or oiio.geterror()}")
     return path
 
 
-def read_image(path) -> np.ndarray:
-    """Read an image as stored, normalised to [0, 1] for integer formats.
+def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: int = 0) -> Path:
+    """Write an animated GIF of linear frames (Pillow), atomically.
 
-    **Returns:** float32 `(H, W, C)`; raises `ValueError` naming the file when it
-    cannot be read as an image.
+    **Arguments:** `path` (.gif); `frames`: `(N, H, W, 3)` linear radiance; `exposure`
+    (stops); `fps`: frames a second; `loop`: 0 loops forever.
+
+    **Returns:** the path written.
+    """
+    from PIL import Image
+
+    path = check_output_path(path)
+    if path.suffix.lower() != ".gif":
+        raise ValueError(f"{str(path)!r} is not a .gif file name")
+    frames = np.asarray(frames, np.float32)
+    if frames.ndim != 4 or frames.shape[0] < 1 or frames.shape[-1] != 3:
+        raise ValueError(f"frames of shape {frames.shape} are not (N, H, W, 3)")
+    if not fps > 0:
+        raise ValueError(f"fps={fps!r} must be > 0")
+    images = [Image.fromarray(to_display(f, exposure=exposure)).quantize(256) for f in frames]
+    with atomic_output(path) as tmp:
+        images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:],
+            duration=max(int(round(1000.0 / fps)), 20), loop=loop, disposal=1,
+        )  # fmt: skip
+    return path
+
+
+def png_bytes(image: np.ndarray, *, exposure: float = 0.0) -> bytes:
+    """Encode a linear image as PNG bytes (8-bit sRGB), for notebooks and widgets."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(to_display(image, exposure=exposure)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def read_image(path) -> np.ndarray:
+    """Read an image file (any format OpenImageIO reads) as linear float32.
+
+    8- and 16-bit files in sRGB (PNG, JPEG, ... as tagged by OpenImageIO) are decoded
+    to linear; float files (EXR, HDR, float TIFF) are taken as linear already. Alpha,
+    where present, is kept as a channel.
+
+    **Returns:** float32 `(H, W, C)`; raises `ValueError` naming the file when it is
+    missing, not an image, truncated or otherwise unreadable.
     """
     oiio = _oiio()
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"image file {str(path)!r} does not exist")
+    if path.stat().st_size == 0:
+        raise ValueError(f"image file {str(path)!r} is empty")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise ValueError(f"{str(path)!r} is not a readable image: {oiio.geterror()}")
+        msg = " ".join(oiio.geterror().split()) or "unknown format"
+        raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
     try:
-        data = inp.read_image(oiio.FLOAT)
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         err = inp.geterror()
+        space = str(spec.get_string_attribute("oiio:ColorSpace", "")).lower()
+        fmt = str(spec.format)
     finally:
         inp.close()
-    if data is None or (err and "truncat" in err.lower()):
-        raise ValueError(f"{str(path)!r} is not a readable image: {err or 'no pixel data'}")
+    if data is None or err:
+        msg = " ".join((err or "no pixel data").split())
+        raise ValueError(f"{str(path)!r} is not a readable image (truncated or corrupt?): {msg}")
     data = np.asarray(data, np.float32)
     if data.ndim == 2:
         data = data[..., None]
+    if data.ndim != 3 or min(data.shape) < 1:
+        raise ValueError(f"{str(path)!r} has pixel data of shape {data.shape}; expected 2-D")
+    integer = fmt.startswith(("uint", "int"))
+    if integer and ("srgb" in space or space == ""):
+        colour = slice(0, 3) if data.shape[-1] >= 3 else slice(0, 1)
+        data[..., colour] = srgb_decode(data[..., colour])
     return data
