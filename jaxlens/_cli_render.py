@@ -1,58 +1,163 @@
-"""`jaxlens render`: one image of a scene."""
+"""`jaxlens render`: one image of a scene (a TOML file, command-line options, or both;
+options override the file)."""
 
 import math
 import time
+from pathlib import Path
 
 from . import _io
-from ._camera import Camera
-from ._render import render
-from ._sky import DefaultSky, GaussianStar, Uniform
+from ._scene import DEFAULT_SKY, read_scene_file, validate
+
+SKY_CHOICES = "star | default | checker | panorama:PATH | plane:PATH"
 
 
 def _size(text):
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"--size {text!r} is not WxH, e.g. 1280x720") from None
+        raise ValueError(f"--size {text!r} is not WxH with whole numbers, e.g. 1280x720") from None
     if w < 1 or h < 1:
-        raise ValueError(f"--size {text!r}: width and height must be >= 1")
+        raise ValueError(f"--size {text!r}: width and height must be >= 1 pixel")
     return w, h
 
 
+def _sky_layers(text) -> list[dict]:
+    kind, _, path = text.partition(":")
+    if kind in ("panorama", "plane"):
+        if not path:
+            raise ValueError(f"--sky {text!r}: give the image as {kind}:PATH")
+        return [{"type": kind, "path": str(Path(path)), "_base": "."}]
+    if path or kind not in ("star", "default", "checker"):
+        raise ValueError(f"--sky {text!r} is not one of: {SKY_CHOICES}")
+    if kind == "default":
+        return [dict(layer) for layer in DEFAULT_SKY]
+    return [{"type": kind}]
+
+
+def _finite(flag, value, valid, ok=lambda v: True):
+    if value is not None and not (math.isfinite(value) and ok(value)):
+        raise ValueError(f"{flag} {value!r} is not valid: expected {valid}")
+
+
+def add_scene_options(p, *, size_default: str, supersample_default: int):
+    """The options `render` and `animate` share (each overrides the scene file)."""
+    p.add_argument("scene", nargs="?", help="TOML scene file (see docs/rendering.md)")
+    p.add_argument("-o", "--output", required=True, help="output file")
+    p.add_argument("--distance", type=float, help="camera distance, units of R_S (default 20)")
+    p.add_argument("--fov", type=float, help="horizontal field of view, degrees (default 60)")
+    p.add_argument("--size", help=f"WxH in pixels (default {size_default})")
+    p.add_argument("--sky", help=f"{SKY_CHOICES} (default: default, a procedural sky and a star)")
+    p.add_argument(
+        "--star-sigma-deg", type=float, help="Gaussian sigma of the star, degrees (default 1)"
+    )
+    p.add_argument("--star-brightness", type=float, help="peak brightness of the star (default 1)")
+    p.add_argument("--floor", type=float, help="uniform sky level added to the sky")
+    p.add_argument("--supersample", type=int, help=f"k x k samples a pixel (default "
+                   f"{supersample_default})")  # fmt: skip
+    p.add_argument("--exposure", type=float, help="exposure in stops, PNG/JPEG (default 0)")
+    p.add_argument("--yaw", type=float, help="view turned right, degrees")
+    p.add_argument("--pitch", type=float, help="view turned up, degrees")
+    p.add_argument("--roll", type=float, help="view turned about the line of sight, degrees")
+    p.add_argument("--accuracy", type=float, help="ray-map accuracy, radians (default 1e-8)")
+    p.add_argument(
+        "--float64", action="store_true", help="compute pixels in float64 (default float32)"
+    )
+    p.set_defaults(_size_default=size_default, _supersample_default=supersample_default)
+
+
+def scene_dict(args) -> dict:
+    """The validated scene: the file (if any), then the command-line options over it."""
+    _finite("--distance", args.distance, "a finite number > 1 (units of R_S)", lambda v: v > 1)
+    _finite("--fov", args.fov, "a number in (0, 180) degrees", lambda v: 0 < v < 180)
+    _finite("--star-sigma-deg", args.star_sigma_deg, "a number in (0, 180) degrees",
+            lambda v: 0 < v < 180)  # fmt: skip
+    _finite("--star-brightness", args.star_brightness, "a finite number")
+    _finite("--floor", args.floor, "a finite number")
+    _finite("--exposure", args.exposure, "a finite number of stops")
+    for flag in ("yaw", "pitch", "roll"):
+        _finite(f"--{flag}", getattr(args, flag), "a finite number of degrees")
+    _finite("--accuracy", args.accuracy, "a number in (0, 0.1) radians", lambda v: 0 < v < 0.1)
+    if args.supersample is not None and not 1 <= args.supersample <= 64:
+        raise ValueError(f"--supersample {args.supersample} is not valid: expected 1 to 64")
+
+    data = read_scene_file(args.scene) if args.scene else {}
+    source = args.scene or "command line"
+    cam = dict(data.get("camera", {})) if isinstance(data.get("camera", {}), dict) else {}
+    if not args.scene:
+        w, h = _size(args._size_default)
+        cam.update(width=w, height=h, supersample=args._supersample_default)
+    if args.size is not None:
+        cam["width"], cam["height"] = _size(args.size)
+    flags = {"distance": "distance", "fov": "fov_deg", "supersample": "supersample",
+             "yaw": "yaw_deg", "pitch": "pitch_deg", "roll": "roll_deg"}  # fmt: skip
+    for flag, key in flags.items():
+        if getattr(args, flag) is not None:
+            cam[key] = getattr(args, flag)
+    if cam or "camera" in data:
+        data["camera"] = cam
+    if args.exposure is not None:
+        data["output"] = {**data.get("output", {}), "exposure": args.exposure}
+    if args.accuracy is not None:
+        data["accuracy"] = args.accuracy
+    layers = data.get("sky", [dict(layer) for layer in DEFAULT_SKY])
+    if args.sky is not None:
+        layers = _sky_layers(args.sky)
+    if not isinstance(layers, list):
+        layers = [layers]
+    star = {}
+    if args.star_sigma_deg is not None:
+        star["sigma_deg"] = args.star_sigma_deg
+    if args.star_brightness is not None:
+        star["brightness"] = args.star_brightness
+    if star:
+        stars = [la for la in layers if isinstance(la, dict) and la.get("type") == "star"]
+        if not stars:
+            layers.append({"type": "star"})
+            stars = layers[-1:]
+        for layer in stars:
+            layer.update(star)
+    if args.floor is not None:
+        floors = [la for la in layers if isinstance(la, dict) and la.get("type") == "uniform"]
+        for layer in floors:
+            layer["level"] = args.floor
+        if not floors and args.floor != 0:
+            layers.append({"type": "uniform", "level": args.floor})
+    data["sky"] = layers
+    return validate(data, source=source)
+
+
 def register(sub):
-    p = sub.add_parser("render", help="render an image of the black hole")
-    p.add_argument("-o", "--output", required=True, help="output image (.png, .jpg, .exr, .hdr)")
-    p.add_argument("--distance", type=float, default=20.0, help="camera distance, R_S (default 20)")
-    p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees")
-    p.add_argument("--size", default="960x540", help="WxH in pixels (default 960x540)")
-    p.add_argument("--sky", default="default", help="star | default (procedural sky + star)")
-    p.add_argument("--star-sigma-deg", type=float, default=1.0, help="star Gaussian sigma, degrees")
-    p.add_argument("--star-brightness", type=float, default=1.0, help="star peak brightness")
-    p.add_argument("--floor", type=float, default=0.0, help="uniform sky level")
-    p.add_argument("--supersample", type=int, default=2, help="k x k samples a pixel")
-    p.add_argument("--exposure", type=float, default=0.0, help="exposure in stops (PNG/JPEG)")
+    p = sub.add_parser(
+        "render",
+        help="render an image of the black hole",
+        description="Render what a static camera near a Schwarzschild black hole sees. "
+        "Options override the scene file.",
+    )
+    add_scene_options(p, size_default="960x540", supersample_default=2)
     p.set_defaults(run=run)
 
 
 def run(args):
-    w, h = _size(args.size)
-    if not (0.0 < args.fov < 180.0):
-        raise ValueError(f"--fov {args.fov} must be in (0, 180) degrees")
-    camera = Camera(args.distance, math.radians(args.fov), w, h, supersample=args.supersample)
-    star = GaussianStar(math.radians(args.star_sigma_deg), args.star_brightness)
-    if args.sky == "star":
-        sky = star
-    elif args.sky == "default":
-        sky = DefaultSky() + star
-    else:
-        raise ValueError(f"--sky {args.sky!r} is not one of: star, default")
-    if args.floor:
-        sky = sky + Uniform(args.floor)
+    from . import cli
+
+    cli.enable_x64()
+    import jax.numpy as jnp
+
+    from ._render import render
+    from ._scene import build_camera, build_sky
+
+    out = _io.check_output_path(args.output)
+    if out.suffix.lower() == ".gif":
+        raise ValueError(f"output {str(out)!r}: a GIF is an animation; use `jaxlens animate`")
+    scene = scene_dict(args)
+    camera = build_camera(scene["camera"], dtype=jnp.float64 if args.float64 else jnp.float32)
+    sky = build_sky(scene["sky"])
     t = time.perf_counter()
-    img = render(camera, sky)
-    path = _io.write_image(args.output, img, exposure=args.exposure)
+    img = render(camera, sky, accuracy=scene["accuracy"])
+    path = _io.write_image(out, img, exposure=scene["output"]["exposure"])
+    c = scene["camera"]
     print(
-        f"wrote {path} ({w}x{h}, D = {args.distance:g} R_S, FOV = {args.fov:g} deg, "
-        f"{time.perf_counter() - t:.1f} s)"
+        f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:g} R_S, "
+        f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s)"
     )
     return 0

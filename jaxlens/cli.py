@@ -1,12 +1,20 @@
-"""The `jaxlens` command. Parses, validates, and calls the public functions."""
+"""The `jaxlens` command. Parses, validates, and calls the public functions.
+
+Errors in the input (bad values, unreadable files, unwritable outputs) end the
+command with one line on stderr and exit code 2; no traceback, and no partial output
+file (every file is written atomically).
+"""
 
 import argparse
 import importlib
+import os
+import signal
 import sys
+from pathlib import Path
 
 # Each subcommand lives in a module with `register(subparsers)`; the handler it sets
 # with `set_defaults(run=...)` returns the exit code.
-_COMMANDS = ("jaxlens._cli_render",)
+_COMMANDS = ("jaxlens._cli_render", "jaxlens._cli_animate")
 _OPTIONAL = ("jaxlens._cli_fit",)
 
 
@@ -14,8 +22,48 @@ class UsageError(Exception):
     """Bad input from the command line: one line on stderr, exit code 2."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (the usage text stays in --help)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def one_line(text: str) -> str:
+    """A message on one line: whitespace runs (newlines too) become one space."""
+    return " ".join(str(text).split())
+
+
+def enable_x64():
+    """Turn on float64 in JAX (the ray map is built in it; pixels stay float32
+    unless asked). Call before any JAX array is made."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _configure_cache():
+    """Keep compiled programs between runs (XLA's persistent cache): the first run
+    compiles for several seconds, later ones start at once. The folder is
+    `$JAXLENS_CACHE_DIR`, default `~/.cache/jaxlens/xla`; an empty value turns it off."""
+    folder = os.environ.get("JAXLENS_CACHE_DIR")
+    if folder is None:
+        base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+        folder = str(Path(base) / "jaxlens" / "xla")
+    if not folder:
+        return
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jaxlens", description="Gravitational lensing by a Schwarzschild black hole."
     )
     sub = parser.add_subparsers(dest="command", required=True)
@@ -32,17 +80,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminate(signum, frame):
+    raise SystemExit(128 + signum)  # unwinds: temporary files are removed
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _configure_cache()
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        signal.signal(signal.SIGTERM, _terminate)
+    except ValueError:  # not the main thread
+        previous = None
     try:
         return int(args.run(args) or 0)
     except (UsageError, ValueError, OSError) as e:
-        print(f"jaxlens {args.command}: error: {e}", file=sys.stderr)
+        print(f"jaxlens {args.command}: error: {one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"jaxlens {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":
