@@ -24,6 +24,7 @@ install: $(VENV)/.installed
 install-test: $(VENV)/.installed-test
 
 demo: install
+	mkdir -p out
 	$(BIN)/jaxlens render -o out/demo.png
 
 test: install-test
