@@ -28,8 +28,7 @@ demo: install
 	$(BIN)/jaxlens render -o out/demo.png
 
 test: install-test
-	$(BIN)/python -m pytest -n 2 --dist loadfile tests
-	$(BIN)/python -m pytest -n 2 --nbmake notebooks
+	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake tests notebooks
 
 lint: install-test
 	$(BIN)/ruff check jaxlens tests benchmarks
