@@ -429,3 +429,34 @@ def _directions_program(camera, view, centred, at_origin):
     if not at_origin:
         n = camera.to_world(n)
     return n, cover
+
+
+def block_memory(
+    camera: Camera, sky: AbstractSky, *, chunk_samples: int = CHUNK_SAMPLES, dtype=None
+) -> dict:
+    """Memory of the compiled block program `render` would run for `camera` (compiled,
+    not run): XLA's own accounting, in bytes.
+
+    **Returns:** a dict with `temp`, `output`, `arguments` (bytes of one block) and
+    `plan` (`plan_blocks`). The whole render needs this plus its float32 output
+    image on the host.
+    """
+    single = camera.batch_shape == ()
+    cameras = jax.tree.map(lambda a: a[None], camera) if single else camera
+    dtype = jnp.dtype(cameras.dtype if dtype is None else dtype)
+    cameras = jax.tree.map(lambda a: a.astype(dtype), cameras)
+    plan = plan_blocks(cameras, chunk_samples)
+    fb = plan["frames"]
+    cams = jax.tree.map(lambda a: a[:fb], cameras)
+    views = jax.tree.map(lambda a: a[:fb], _build_views(cams.distance, 1e-6, dtype))
+    lowered = _block_program.lower(
+        cams, sky, views, jnp.asarray(0, dtype), plan["rows"], cameras.is_centred(),
+        cameras.at_origin(), plan["pair"],
+    )  # fmt: skip
+    stats = lowered.compile().compiled.memory_analysis()
+    return {
+        "temp": int(stats.temp_size_in_bytes),
+        "output": int(stats.output_size_in_bytes),
+        "arguments": int(stats.argument_size_in_bytes),
+        "plan": plan,
+    }
