@@ -127,8 +127,18 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     if not np.isfinite(exposure):
         raise ValueError(f"exposure={exposure!r} must be finite (stops)")
     img = _for_format(img, ext)
+    c = img.shape[-1]
+    alpha = c in (2, 4)
     if ext in FLOAT_FORMATS:
         data, fmt, space = np.ascontiguousarray(img), oiio.FLOAT, "lin_rec709"
+    elif alpha:
+        # Linear colour with associated (premultiplied) alpha -> the file's convention:
+        # unassociated sRGB colour, linear alpha, 8 bits.
+        a = np.clip(img[..., -1:], 0.0, 1.0)
+        colour = np.where(a > 0, img[..., :-1] / np.where(a > 0, a, 1.0), 0.0)
+        data = np.concatenate([to_display(colour, exposure=exposure),
+                               np.round(a * 255.0).astype(np.uint8)], axis=-1)  # fmt: skip
+        fmt, space = oiio.UINT8, "sRGB"
     else:
         data, fmt, space = to_display(img, exposure=exposure), oiio.UINT8, "sRGB"
     h, w, c = data.shape
@@ -136,6 +146,8 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     if c == 2:
         spec.channelnames = ("Y", "A")
         spec.alpha_channel = 1
+    if alpha and fmt == oiio.UINT8:
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # written as given, not divided again
     spec.attribute("oiio:ColorSpace", space)
     spec.attribute("Software", "jaxlens")
     with atomic_output(path) as tmp:
@@ -190,7 +202,8 @@ def read_image(path) -> np.ndarray:
 
     8- and 16-bit files in sRGB (PNG, JPEG, ... as tagged by OpenImageIO) are decoded
     to linear; float files (EXR, HDR, float TIFF) are taken as linear already. Alpha,
-    where present, is kept as a channel.
+    where present, is kept as a channel, and the colour is returned multiplied by it
+    (associated alpha, the convention of linear images and of `write_image`).
 
     **Returns:** float32 `(H, W, C)`; raises `ValueError` naming the file when it is
     missing, not an image, truncated or otherwise unreadable.
@@ -201,7 +214,9 @@ def read_image(path) -> np.ndarray:
         raise ValueError(f"image file {str(path)!r} does not exist")
     if path.stat().st_size == 0:
         raise ValueError(f"image file {str(path)!r} is empty")
-    inp = oiio.ImageInput.open(str(path))
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # decode sRGB before associating alpha
+    inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
         msg = " ".join(oiio.geterror().split()) or "unknown format"
         raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
@@ -211,6 +226,8 @@ def read_image(path) -> np.ndarray:
         err = inp.geterror()
         space = str(spec.get_string_attribute("oiio:ColorSpace", "")).lower()
         fmt = str(spec.format)
+        alpha = spec.alpha_channel
+        unassociated = bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0))
     finally:
         inp.close()
     if data is None or err:
@@ -222,7 +239,9 @@ def read_image(path) -> np.ndarray:
     if data.ndim != 3 or min(data.shape) < 1:
         raise ValueError(f"{str(path)!r} has pixel data of shape {data.shape}; expected 2-D")
     integer = fmt.startswith(("uint", "int"))
+    colour = [i for i in range(data.shape[-1]) if i != alpha][:3]
     if integer and ("srgb" in space or space == ""):
-        colour = slice(0, 3) if data.shape[-1] >= 3 else slice(0, 1)
         data[..., colour] = srgb_decode(data[..., colour])
+    if 0 <= alpha < data.shape[-1] and unassociated:
+        data[..., colour] *= data[..., alpha : alpha + 1]  # associated (premultiplied)
     return data
