@@ -1,0 +1,185 @@
+"""`jaxlens render` and `jaxlens animate`: outputs, overrides, and every bad input as one
+line on stderr with exit code 2 and no file left behind."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from jaxlens import cli
+from jaxlens._io import read_image, write_image
+
+
+@pytest.fixture(autouse=True)
+def _no_persistent_cache(monkeypatch):
+    monkeypatch.setenv("JAXLENS_CACHE_DIR", "")
+
+
+def run(args, capsys):
+    code = cli.main(args)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_render_star_exr(tmp_path, capsys):
+    out = tmp_path / "x.exr"
+    args = ["--sky", "star", "--size", "48x32", "--supersample", "2", "--distance", "10"]
+    code, stdout, err = run(["render", *args, "--fov", "90", "-o", str(out)], capsys)
+    assert code == 0 and "wrote" in stdout and err == ""
+    img = read_image(out)
+    assert img.shape == (32, 48, 3)
+    # Linear floats, no exposure: the ring of a peak-1 star stays below 1 and close
+    # to it; the shadow at the centre is black.
+    assert 0.5 < img.max() <= 1.0 + 1e-6
+    assert img[16, 24].max() == 0.0
+    assert os.listdir(tmp_path) == ["x.exr"]
+
+
+def test_options_override_the_scene_file(tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    scene.write_text(
+        '[camera]\ndistance = 30.0\nwidth = 16\nheight = 8\n[[sky]]\ntype = "checker"\n'
+    )
+    code, stdout, _ = run(["render", str(scene), "--distance", "10", "-o",
+                           str(tmp_path / "a.png")], capsys)  # fmt: skip
+    assert code == 0 and "16x8, D = 10 R_S" in stdout
+    code, stdout, _ = run(["render", str(scene), "-o", str(tmp_path / "b.png")], capsys)
+    assert code == 0 and "D = 30 R_S" in stdout
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+@pytest.mark.parametrize("ext", [".png", ".exr"])
+def test_panorama_files_of_any_channel_count(tmp_path, capsys, channels, ext):
+    pano = tmp_path / f"p{ext}"
+    write_image(pano, np.random.default_rng(0).random((16, 32, channels)) * 0.5)
+    out = tmp_path / "o.png"
+    code, _, err = run(["render", "--sky", f"panorama:{pano}", "--size", "16x8",
+                        "--supersample", "1", "-o", str(out)], capsys)  # fmt: skip
+    assert code == 0, err
+    assert Image.open(out).size == (16, 8)
+
+
+def _bad_files(tmp_path):
+    (tmp_path / "text.png").write_text("hello")
+    good = write_image(tmp_path / "good.exr", np.ones((32, 64, 3), np.float32))
+    (tmp_path / "cut.exr").write_bytes(good.read_bytes()[:200])
+    (tmp_path / "bad.toml").write_text("[camera]\nfov = 60\n")
+
+
+BAD = [
+    (["--distance", "0.5"], "--distance 0.5"),
+    (["--distance", "1"], "--distance 1.0"),
+    (["--distance", "-3"], "--distance -3.0"),
+    (["--distance", "nan"], "--distance nan"),
+    (["--distance", "inf"], "--distance inf"),
+    (["--fov", "0"], "--fov 0.0"),
+    (["--fov", "180"], "--fov 180.0"),
+    (["--fov", "-10"], "--fov -10.0"),
+    (["--size", "0x10"], "--size '0x10'"),
+    (["--size=-4x4"], "--size '-4x4'"),
+    (["--size", "10"], "--size '10'"),
+    (["--supersample", "0"], "--supersample 0"),
+    (["--star-sigma-deg", "0"], "--star-sigma-deg 0.0"),
+    (["--sky", "nebula"], "--sky 'nebula'"),
+    (["--sky", "panorama:{tmp}/none.png"], "none.png' does not exist"),
+    (["--sky", "panorama:{tmp}/text.png"], "text.png' is not a readable image"),
+    (["--sky", "panorama:{tmp}/cut.exr"], "cut.exr' is not a readable image"),
+    (["--sky", "plane:{tmp}/text.png"], "text.png' is not a readable image"),
+    (["{tmp}/bad.toml"], "unknown key 'fov'"),
+    (["{tmp}/none.toml"], "none.toml' does not exist"),
+]
+
+
+@pytest.mark.parametrize("extra,message", BAD, ids=[" ".join(e) for e, _ in BAD])
+def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, extra, message):
+    _bad_files(tmp_path)
+    before = sorted(os.listdir(tmp_path))
+    extra = [e.format(tmp=tmp_path) for e in extra]
+    code, stdout, err = run(["render", "--size", "8x6", *extra, "-o", str(tmp_path / "o.png")],
+                            capsys)  # fmt: skip
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("jaxlens render: error: ")
+    assert message in err
+    assert sorted(os.listdir(tmp_path)) == before  # nothing written, no temporary files
+
+
+@pytest.mark.parametrize(
+    "output,message",
+    [
+        ("{tmp}/missing/o.png", "does not exist"),
+        ("/sys/o.png", "not writable"),
+        ("{tmp}/o.bmp", "unsupported extension '.bmp'"),
+        ("{tmp}/o.gif", "jaxlens animate"),
+    ],
+)
+def test_bad_output_paths(tmp_path, capsys, output, message):
+    if output.startswith("/sys") and os.access("/sys", os.W_OK) and os.geteuid() != 0:
+        pytest.skip("/sys is not a read-only folder here")
+    code, _, err = run(["render", "--size", "8x6", "-o", output.format(tmp=tmp_path)], capsys)
+    assert code == 2 and err.count("\n") == 1 and message in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_usage_errors_are_one_line(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["render", "--no-such-option", "-o", "x.png"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--no-such-option" in err
+
+
+def test_interrupt_leaves_no_file(tmp_path, capsys, monkeypatch):
+    import jaxlens._render as r
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(r, "render", interrupted)
+    code, _, err = run(["render", "--size", "8x6", "-o", str(tmp_path / "o.png")], capsys)
+    assert code == 130 and "interrupted" in err and os.listdir(tmp_path) == []
+
+
+def test_animate_writes_frames_and_gif(tmp_path, capsys):
+    out = tmp_path / "orbit.gif"
+    args = ["--sky", "checker", "--size", "16x12", "--frames", "3", "--path", "orbit"]
+    code, stdout, err = run(["animate", *args, "--supersample", "1", "-o", str(out)], capsys)
+    assert code == 0, err
+    with Image.open(out) as im:
+        assert im.n_frames == 3 and im.size == (16, 12)
+    frames = sorted(os.listdir(tmp_path / "orbit_frames"))
+    assert frames == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    # An orbit turns the sky: the frames differ.
+    a = np.asarray(Image.open(tmp_path / "orbit_frames" / frames[0]))
+    b = np.asarray(Image.open(tmp_path / "orbit_frames" / frames[1]))
+    assert np.abs(a.astype(int) - b).max() > 50
+
+
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        (["-o", "{tmp}/a.png"], "must be a .gif"),
+        (["--path", "approach", "--start", "0.5", "-o", "{tmp}/a.gif"], "--start 0.5"),
+        (["--path", "zoom", "--stop", "200", "-o", "{tmp}/a.gif"], "--stop 200.0"),
+        (["--frames", "0", "-o", "{tmp}/a.gif"], "--frames 0"),
+    ],
+)
+def test_animate_bad_input(tmp_path, capsys, extra, message):
+    extra = [e.format(tmp=tmp_path) for e in extra]
+    code, _, err = run(["animate", "--size", "8x6", *extra], capsys)
+    assert code == 2 and err.count("\n") == 1 and message in err
+    assert os.listdir(tmp_path) == []
+
+
+def test_command_line_process_has_no_traceback(tmp_path):
+    env = dict(os.environ, JAXLENS_CACHE_DIR="")
+    p = subprocess.run(
+        [sys.executable, "-m", "jaxlens.cli", "render", "--distance", "0.9", "-o",
+         str(tmp_path / "x.png")], capture_output=True, text=True, env=env, timeout=120,
+    )  # fmt: skip
+    assert p.returncode == 2
+    assert p.stderr.strip().count("\n") == 0 and "Traceback" not in p.stderr
+    assert "--distance 0.9" in p.stderr
+    assert os.listdir(tmp_path) == []
