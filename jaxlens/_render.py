@@ -166,7 +166,8 @@ def _shade_block(camera, sky, view, row0, rows: int, centred: bool, at_origin: b
     """Radiance of pixel rows `row0 .. row0+rows`; with `pair` also of their mirror
     rows `H-row0-rows .. H-row0` (centred cameras only).
 
-    **Returns:** `(rows, W, 3)`, or `(2, rows, W, 3)` with `pair`.
+    **Returns:** `(rows, W, 3)`, or `(2 rows, W, 3)` with `pair` (the block, then
+    its mirror rows, each top to bottom: the whole image when `rows` is `H/2`).
     """
     k, w = camera.supersample, camera.width
     if centred:
@@ -181,7 +182,7 @@ def _shade_block(camera, sky, view, row0, rows: int, centred: bool, at_origin: b
         if not at_origin:
             n = camera.to_world(n)
         out.append(_average(sky(n) * cov[..., None], rows, w, k))
-    return jnp.stack(out) if pair else out[0]
+    return jnp.concatenate(out, axis=0) if pair else out[0]
 
 
 def shade(camera: Camera, sky: AbstractSky, ray_map: RayMap, row0=0, rows: int | None = None):
@@ -325,9 +326,14 @@ def render_frames(
     total_rows = h // 2 if pair else h
     frame_blocks = _starts(n, fb)
     row_blocks = _starts(total_rows, rows)
-    out = np.empty((n, h, w, 3), np.float32)
     bar = None
     count = len(frame_blocks) * len(row_blocks)
+    if count == 1:  # one block holds the whole batch, rows in image order
+        block = _block_program(cameras, sky, views, jnp.asarray(0, dtype), rows, centred,
+                               at_origin, pair)  # fmt: skip
+        out = np.array(block)  # a writable NumPy copy
+        return out[0] if single else out
+    out = np.empty((n, h, w, 3), np.float32)
     if count > 1 and progress is not False:
         from tqdm.auto import tqdm
 
@@ -339,8 +345,8 @@ def render_frames(
         block = np.asarray(block)[f0 - fs :]
         frames = slice(f0, fs + fb)
         if pair:
-            out[frames, r0 : rs + rows] = block[:, 0, r0 - rs :]
-            out[frames, h - rs - rows : h - r0] = block[:, 1, : rows - (r0 - rs)]
+            out[frames, r0 : rs + rows] = block[:, r0 - rs : rows]
+            out[frames, h - rs - rows : h - r0] = block[:, rows : 2 * rows - (r0 - rs)]
         else:
             out[frames, r0 : rs + rows] = block[:, r0 - rs :]
         if bar is not None:

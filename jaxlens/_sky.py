@@ -317,21 +317,33 @@ def to_rgb(image: ArrayLike, *, name: str = "image") -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def _bilinear(image, j0, j1, i0, i1, fu, fv, dtype):
-    """Bilinear blend of the texels (j0|j1, i0|i1) of `image (h, w, 3)` with weights
-    `fu`, `fv` in [0, 1]; the indices must be in range."""
-    w = image.shape[1]
-    flat = image.reshape(-1, 3)
-    # Materialise indices and weights first: otherwise XLA fuses their arithmetic
-    # into the gather loop once per channel.
-    idx, fu, fv = jax.lax.optimization_barrier(
-        ((j0 * w + i0, j0 * w + i1, j1 * w + i0, j1 * w + i1), fu, fv)
-    )
-    a, b, c, d = (flat.at[i].get(mode="promise_in_bounds").astype(dtype) for i in idx)
+def _bilinear(texels, j0, i0, fu, fv, dtype):
+    """Bilinear blend of the texels (j0, i0), (j0, i0 + 1), (j0 + 1, i0), (j0 + 1,
+    i0 + 1) of `texels (h, w, 3)` with weights `fu`, `fv` in [0, 1]; the caller
+    guarantees every index is in range (padded borders)."""
+    w = texels.shape[1]
+    flat = texels.reshape(-1, 3)
+    # Materialise the index and weights first: otherwise XLA fuses their arithmetic
+    # (two arctangents) into the gather loop, once for each channel.
+    base, fu, fv = jax.lax.optimization_barrier((j0 * w + i0, fu, fv))
+
+    def tex(offset):
+        return flat.at[base + offset].get(mode="promise_in_bounds").astype(dtype)
+
     fu, fv = fu[..., None], fv[..., None]
-    top = a + fu * (b - a)
-    bot = c + fu * (d - c)
+    top = tex(0) + fu * (tex(1) - tex(0))
+    bot = tex(w) + fu * (tex(w + 1) - tex(w))
     return top + fv * (bot - top)
+
+
+def _panorama_texels(image):
+    """The texels a `Panorama` samples: the image with its first column repeated
+    after the last (the seam) and a row of the first (last) row's mean above (below)
+    it, which the look-up places at the north (south) pole."""
+    north = jnp.broadcast_to(jnp.mean(image[:1], axis=1, keepdims=True), (1,) + image.shape[1:])
+    south = jnp.broadcast_to(jnp.mean(image[-1:], axis=1, keepdims=True), (1,) + image.shape[1:])
+    rows = jnp.concatenate([north, image, south], axis=0)
+    return jnp.concatenate([rows, rows[:, :1]], axis=1)
 
 
 class Panorama(AbstractSky):
@@ -345,28 +357,34 @@ class Panorama(AbstractSky):
     the first (last) row's centre and the pole the value blends linearly in latitude
     into the mean of that row, so the pole has one value and no pinch.
 
-    **Fields:** `image (h, w, 3)` linear radiance, `brightness` (scale), `yaw`,
-    `pitch`, `roll` (radians: the panorama's orientation, the old programs' "offset";
-    see `Rotated`).
+    **Fields:** `texels (h + 2, w + 1, 3)`: the image in linear radiance, framed for
+    the look-up (`image` gives it back); `brightness` (scale), `yaw`, `pitch`, `roll`
+    (radians: the panorama's orientation, the old programs' "offset"; see `Rotated`).
     """
 
-    image: Float[Array, "h w 3"]
+    texels: Float[Array, "h2 w1 3"]
     brightness: Float[Array, ""]
     yaw: Float[Array, ""]
     pitch: Float[Array, ""]
     roll: Float[Array, ""]
 
     def __init__(self, image: ArrayLike, *, brightness=1.0, yaw=0.0, pitch=0.0, roll=0.0):
-        if isinstance(image, jax.core.Tracer):
-            self.image = image
-        else:
-            self.image = jnp.asarray(to_rgb(image, name="panorama image"))
+        """**Arguments:** `image`: `(h, w)` or `(h, w, 1..4)` linear radiance (see
+        `to_rgb`); the other fields as above."""
+        if not isinstance(image, jax.core.Tracer):
+            image = jnp.asarray(to_rgb(image, name="panorama image"))
+        self.texels = _panorama_texels(image)
         self.brightness = _farray(brightness)
         self.yaw, self.pitch, self.roll = _farray(yaw), _farray(pitch), _farray(roll)
 
     def __check_init__(self):
         for name in ("brightness", "yaw", "pitch", "roll"):
             _finite(name, getattr(self, name), "radians" if name != "brightness" else "scale")
+
+    @property
+    def image(self) -> Float[Array, "h w 3"]:
+        """The panorama image `(h, w, 3)`."""
+        return self.texels[1:-1, :-1]
 
     @classmethod
     def from_file(cls, path, **kwargs) -> "Panorama":
@@ -379,23 +397,24 @@ class Panorama(AbstractSky):
     def __call__(self, n):
         dt = n.dtype
         n = _unrotate(n, self.yaw, self.pitch, self.roll)
-        h, w = self.image.shape[:2]
+        h, w = self.texels.shape[0] - 2, self.texels.shape[1] - 1
         lon, lat = angles_from_direction(n)
-        u = (lon * (0.5 / math.pi) + 0.5) * w - 0.5
-        v = (0.5 - lat * (1.0 / math.pi)) * h - 0.5
+        u = (lon * (0.5 / math.pi) + 0.5) * w - 0.5  # in [-0.5, w - 0.5]
+        v = (0.5 - lat * (1.0 / math.pi)) * h - 0.5  # in [-0.5, h - 0.5]
         u0 = jnp.floor(u)
-        i0 = u0.astype(jnp.int32) % w  # the columns wrap: no seam at lon = +-pi
-        i1 = jnp.where(i0 == w - 1, 0, i0 + 1)
-        vc = jnp.clip(v, 0.0, h - 1.0)
-        j0 = jnp.minimum(jnp.floor(vc).astype(jnp.int32), max(h - 2, 0))
-        j1 = jnp.minimum(j0 + 1, h - 1)
-        val = _bilinear(self.image, j0, j1, i0, i1, u - u0, vc - j0.astype(dt), dt)
-        # Polar caps: blend into the mean of the first/last row at the pole.
-        north = jnp.mean(self.image[0], axis=0).astype(dt)
-        south = jnp.mean(self.image[-1], axis=0).astype(dt)
-        tn = jnp.clip(-2.0 * v, 0.0, 1.0)[..., None]
-        ts = jnp.clip(2.0 * (v - (h - 1.0)), 0.0, 1.0)[..., None]
-        val = val + tn * (north - val) + ts * (south - val)
+        i0 = u0.astype(jnp.int32)
+        i0 = jnp.where(i0 < 0, w - 1, i0)  # the columns wrap: no seam at lon = +-pi
+        fu = u - u0
+        # Rows: texel row r + 1 holds image row r; rows 0 and h + 1 hold the poles,
+        # half a row beyond the first and last row centres.
+        interior = jnp.clip(jnp.floor(v).astype(jnp.int32) + 1, 1, max(h - 1, 1))
+        j0 = jnp.where(v < 0, 0, jnp.where(v > h - 1, h, interior))
+        fv = jnp.where(
+            v < 0,
+            2.0 * v + 1.0,
+            jnp.where(v > h - 1, 2.0 * (v - (h - 1)), v - (interior - 1).astype(dt)),
+        )
+        val = _bilinear(self.texels, j0, i0, fu, jnp.clip(fv, 0.0, 1.0), dt)
         return self.brightness.astype(dt) * val
 
 
@@ -468,7 +487,7 @@ class PlaneImage(AbstractSky):
         u0 = jnp.minimum(jnp.floor(u), w)
         v0 = jnp.minimum(jnp.floor(v), h)
         i0, j0 = u0.astype(jnp.int32), v0.astype(jnp.int32)
-        val = _bilinear(framed, j0, j0 + 1, i0, i0 + 1, u - u0, v - v0, dt)
+        val = _bilinear(framed, j0, i0, u - u0, v - v0, dt)
         return self.brightness.astype(dt) * jnp.where(front[..., None], val, 0.0)
 
 

@@ -1,0 +1,255 @@
+"""Benchmark: a 1920 x 1080 panorama render, warm and compile time apart, and the check
+that every pixel's sky direction is within 0.01 pixel of a per-pixel exact trace.
+
+    .venv/bin/python benchmarks/bench_render.py [--repeats 15] [--skip-check]
+
+Writes benchmarks/results/render.md. The sky is an equirectangular panorama made by
+code (the procedural `DefaultSky` sampled onto a 4096 x 2048 grid), so nothing is
+downloaded; the render looks it up bilinearly at every pixel.
+
+What is timed (`render(camera, Panorama(...))`, float32 pixels, the ray map built in
+float64, one pixel a sample):
+- *compile*: the first call (tracing and XLA compilation of the ray-map build and of
+  the render block) minus one warm call;
+- *warm*: the median (and min) of repeated calls, each ending with the image on the
+  host as a NumPy array; the breakdown times the parts alone.
+
+The accuracy check: for every pixel the render's own sky direction (`sky_directions`,
+the same code path) against a float64 per-pixel trace with `trace(...,
+method=Exact(iterations=12))`, its local angle alpha computed in float64 from the pixel
+centre. The error is the shift in the image that would produce the direction error:
+radial, $|\\Delta\\Phi| / |d\\Phi/d\\alpha|$ converted to pixels by
+$d\\rho/d\\alpha = f/\\cos^2\\alpha$; azimuthal, $|\\Delta\\beta|\\,\\rho$. Pixels that
+straddle the shadow edge are compared at the alpha the render uses for their escaping
+part (their centroid); captured pixels have no direction. The strict angular error
+(the direction error over the angle of one pixel, 1/f) is reported as well.
+"""
+
+import argparse
+import datetime
+import math
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxlens._camera import Camera  # noqa: E402
+from jaxlens._render import (  # noqa: E402
+    _block_program,
+    _build_views,
+    plan_blocks,
+    render,
+    sky_directions,
+)
+from jaxlens._sky import DefaultSky, Panorama, Uniform, equirectangular  # noqa: E402
+from jaxlens._trace import Exact, trace  # noqa: E402
+
+W, H, DISTANCE, FOV_DEG = 1920, 1080, 20.0, 60.0
+GOAL_S, GOAL_PX = 0.1, 0.01
+
+
+def machine() -> str:
+    cpu = platform.machine()
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        git = ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"]
+        commit = subprocess.run(git, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "?"
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (
+        f"{cpu}, {len(os.sched_getaffinity(0))} cores usable, load average {load:.1f} at the "
+        f"start; JAX {jax.__version__} ({jax.default_backend()}), "
+        f"{datetime.date.today().isoformat()}, commit {commit}"
+    )
+
+
+def timed(f, repeats):
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(f())
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts)), float(np.min(ts))
+
+
+def accuracy(camera) -> dict:
+    """Per-pixel check of the render's sky directions against an exact float64 trace."""
+    n, cover = sky_directions(camera)  # float32, the render's code path
+    n = n.astype(np.float64)
+    f = W / 2 / math.tan(math.radians(FOV_DEG) / 2)
+    x = np.arange(W) + 0.5 - W / 2
+    y = H / 2 - (np.arange(H) + 0.5)
+    x, y = np.broadcast_arrays(x[None, :], y[:, None])
+    rho = np.hypot(x, y)
+    alpha = np.arctan2(rho, f)
+    alpha_sh = math.asin(1.5 * math.sqrt(3) * math.sqrt(1 - 1 / DISTANCE) / DISTANCE)
+    # Straddling pixels: the render looks up the centroid of the escaping part.
+    width = np.cos(alpha) ** 2 / f
+    cov = np.clip((alpha - alpha_sh) / width + 0.5, 0, 1)
+    alpha_used = np.maximum(alpha, alpha_sh + 0.5 * width * (1 - cov))
+    escaping = cover > 0
+
+    @jax.jit
+    def exact(a):
+        fn = lambda a: trace(a, DISTANCE, method=Exact(iterations=12)).phi  # noqa: E731
+        return jax.jvp(fn, (a,), (jnp.ones_like(a),))
+
+    phi_ref = np.empty(alpha.shape)
+    dphi = np.empty(alpha.shape)
+    rows = 128
+    for r in range(0, H, rows):
+        p, d = exact(jnp.asarray(alpha_used[r : r + rows]))
+        phi_ref[r : r + rows], dphi[r : r + rows] = np.asarray(p), np.asarray(d)
+    beta = np.arctan2(y, x)
+    sp, cp, sb, cb = np.sin(phi_ref), np.cos(phi_ref), np.sin(beta), np.cos(beta)
+    ref = np.stack([sp * cb, sp * sb, -cp], -1)
+    delta = n - ref
+    # Components of the direction error along d n / d Phi and d n / d beta / sin(Phi).
+    along_phi = np.abs(delta[..., 0] * cp * cb + delta[..., 1] * cp * sb + delta[..., 2] * sp)
+    along_beta = np.abs(-delta[..., 0] * sb + delta[..., 1] * cb)
+    radial = along_phi / np.abs(dphi) * f / np.cos(alpha) ** 2  # pixels
+    azimuthal = along_beta / np.maximum(np.abs(sp), 1e-300) * rho  # pixels
+    shift = np.hypot(radial, azimuthal)[escaping]
+    strict = (np.linalg.norm(delta, axis=-1) * f)[escaping]  # direction error / (1/f)
+    return {
+        "pixels": int(escaping.sum()),
+        "straddling": int(((cover > 0) & (cover < 1)).sum()),
+        "captured": int((cover == 0).sum()),
+        "max_shift": float(shift.max()),
+        "p999_shift": float(np.quantile(shift, 0.999)),
+        "max_strict": float(strict.max()),
+        "strict_over": int((strict > GOAL_PX).sum()),
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--skip-check", action="store_true")
+    args = ap.parse_args()
+    info = machine()
+    print(info)
+
+    t = time.perf_counter()
+    pano_img = equirectangular(DefaultSky(), 4096, 2048)
+    t_pano = time.perf_counter() - t
+    sky = Panorama(pano_img)
+    f32 = np.float32
+    camera = Camera(f32(DISTANCE), f32(math.radians(FOV_DEG)), W, H)
+
+    t = time.perf_counter()
+    img = render(camera, sky)
+    first = time.perf_counter() - t
+    warm_med, warm_min = timed(lambda: render(camera, sky), args.repeats)
+    compile_s = first - warm_min
+    assert img.shape == (H, W, 3) and np.all(np.isfinite(img))
+
+    # Breakdown: the ray map alone, the geometry alone (a uniform sky needs no look-up),
+    # the full block on the device, and the float64 render for comparison.
+    plan = plan_blocks(camera)
+    dist = np.array([DISTANCE])
+    t_map = timed(lambda: _build_views(dist, 1e-8, jnp.dtype("float32")), args.repeats)
+    views = _build_views(dist, 1e-8, jnp.dtype("float32"))
+    cams = jax.tree.map(lambda a: a[None], camera)
+    r0 = jnp.asarray(0, jnp.float32)
+
+    def block(s):
+        return _block_program(cams, s, views, r0, plan["rows"], True, True, plan["pair"])
+
+    block(Uniform(f32(0.5)))
+    t_geom = timed(lambda: block(Uniform(f32(0.5))), args.repeats)
+    t_block = timed(lambda: block(sky), args.repeats)
+    cam64 = Camera(DISTANCE, math.radians(FOV_DEG), W, H)
+    render(cam64, sky)
+    t64 = timed(lambda: render(cam64, sky), max(3, args.repeats // 3))
+    t_general = None
+    oriented = Camera(f32(DISTANCE), f32(math.radians(FOV_DEG)), W, H, roll=f32(1e-30))
+    render(oriented, sky)
+    t_general = timed(lambda: render(oriented, sky), max(3, args.repeats // 3))
+
+    acc = None if args.skip_check else accuracy(camera)
+    print(f"warm {warm_med * 1e3:.1f} ms (min {warm_min * 1e3:.1f}), compile {compile_s:.1f} s")
+    print(acc)
+
+    lines = [
+        "# Render benchmark: 1920 x 1080 panorama",
+        "",
+        f"Machine: {info}.",
+        "",
+        f"Scene: static camera at D = {DISTANCE:g} R_S, horizontal FOV {FOV_DEG:g} deg, "
+        f"{W} x {H} pixels, one sample a pixel, float32 pixels (ray map built in float64, "
+        f"accuracy 1e-8 rad), sky: a {pano_img.shape[1]} x {pano_img.shape[0]} "
+        f"equirectangular panorama (the procedural sky sampled by code in {t_pano:.1f} s), "
+        "bilinear look-up at every pixel. Produced by `benchmarks/bench_render.py`.",
+        "",
+        "| what | time |",
+        "| --- | --- |",
+        f"| **warm render** (median of {args.repeats}; image on the host as NumPy) | "
+        f"**{warm_med * 1e3:.1f} ms** (min {warm_min * 1e3:.1f} ms) |",
+        f"| compile (first call minus a warm call) | {compile_s:.1f} s |",
+        f"| of which: ray map for this distance (3189 knots, float64) | {t_map[0] * 1e3:.1f} ms |",
+        f"| of which: render block with a uniform sky (geometry and ray map look-ups) | "
+        f"{t_geom[0] * 1e3:.1f} ms |",
+        f"| of which: render block with the panorama (on the device) | {t_block[0] * 1e3:.1f} ms |",
+        f"| for comparison: the same render in float64 | {t64[0] * 1e3:.1f} ms |",
+        f"| for comparison: float32 without the mirror symmetry (per-sample rotation "
+        f"path) | {t_general[0] * 1e3:.1f} ms |",
+        "",
+        f"Goal: under {GOAL_S * 1e3:.0f} ms warm: "
+        f"**{'met' if warm_med < GOAL_S else 'not met'}** on this run "
+        "(a shared machine: timings drift with its load, see the load average above).",
+        "",
+    ]
+    if acc is not None:
+        ok = acc["max_shift"] < GOAL_PX
+        lines += [
+            "## Accuracy: every pixel's sky direction against an exact per-pixel trace",
+            "",
+            f"{acc['pixels']} pixels with a sky direction ({acc['straddling']} of them on the "
+            f"shadow edge, compared at the alpha the render uses for them), "
+            f"{acc['captured']} captured.",
+            "",
+            "| measure | value |",
+            "| --- | --- |",
+            f"| largest image-plane shift of a sky direction | **{acc['max_shift']:.2e} px** |",
+            f"| 99.9 % of pixels within | {acc['p999_shift']:.2e} px |",
+            f"| largest direction error over the angle of a pixel (1/f) | "
+            f"{acc['max_strict']:.2e} |",
+            f"| pixels whose direction error exceeds 0.01 of a pixel's angle | "
+            f"{acc['strict_over']} |",
+            "",
+            f"Goal: every pixel within {GOAL_PX} px: **{'met' if ok else 'not met'}**. The "
+            "direction error itself is larger than 0.01 of a pixel's angle only where the "
+            "sky is magnified (next to the shadow edge, |dPhi/dalpha| up to ~1e3): there "
+            "float32 rounding of alpha (6e-8 rad) is amplified in Phi, but it is still "
+            "the sky seen from within a tiny fraction of a pixel.",
+            "",
+        ]
+    out = ROOT / "benchmarks" / "results" / "render.md"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text("\n".join(lines))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
