@@ -1,0 +1,149 @@
+"""Point sources: image positions by the lens equation on the ray map, magnification
+from the Jacobian of the lens map by autodiff (static camera at $D$, units of R_S).
+
+Camera frame as in `_camera`: the hole on $+z$. A source at infinity at angle
+$\\theta$ from $+z$ (the direction behind the hole) and azimuth $\\beta_s$ has images in
+the orbital plane of $\\beta_s$: where the escape angle $\\Phi(\\alpha) = (2m+1)\\pi -
+\\theta$ on the source's side (order $m = 0$: the primary image) and $(2m+1)\\pi +
+\\theta$ on the other side ($\\beta_s + \\pi$; $m = 0$: the secondary image).
+
+The lens map sends an image-plane point $p = \\alpha(\\cos\\beta, \\sin\\beta)$ (azimuthal
+equidistant coordinates about the hole's direction, radians) to the source point
+$q = \\theta(\\cos\\beta', \\sin\\beta')$ (the same about $+z$). The magnification is the
+ratio of solid angles, $\\mu = [\\sin\\alpha/\\alpha]\\,/\\,[\\sin\\theta/\\theta] \\,/\\,
+\\det(\\partial q/\\partial p)$, signed by the image's parity; the Jacobian is
+`jax.jacfwd` of the exact lens map.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ._camera import Camera, sky_direction
+from ._raymap import RayMap
+
+_BISECTIONS = 90
+
+
+def lens_map(p: Float[Array, "... 2"], ray_map: RayMap) -> Float[Array, "... 2"]:
+    """Source position of the image-plane point `p` (radians, azimuthal equidistant
+    about the hole's direction) for the static camera of `ray_map` (a `RayMap`: the
+    escape angle of the camera's distance, differentiable in it).
+
+    **Returns:** $q$ `(..., 2)`: the escaping ray's asymptote, azimuthal equidistant
+    about $+z$ (radians). Meaningful outside the shadow.
+    """
+    alpha = jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2)
+    n = sky_direction(ray_map.escape_angle(alpha), p[..., 0] / alpha, p[..., 1] / alpha)
+    rho = jnp.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2)
+    theta = jnp.arctan2(rho, n[..., 2])
+    return (theta / rho)[..., None] * n[..., :2]
+
+
+def solve_image(target: ArrayLike, ray_map: RayMap) -> Float[Array, "..."]:
+    """The local angle $\\alpha > \\alpha_{sh}$ (radians) where the escape angle of
+    `ray_map` equals `target` (radians, > 0): the lens equation on the ray map.
+
+    Bisection in $\\tau = \\ln(\\alpha - \\alpha_{sh})$ ($\\Phi$ falls monotonically
+    from $+\\infty$ at the shadow edge to 0 at $\\alpha = \\pi$), then one Newton step
+    that carries the derivatives (implicit function theorem): works under `jit`,
+    `vmap`, `grad` and `jacfwd`.
+    """
+    target = jnp.asarray(target, ray_map.phi.dtype)
+    t0 = jax.lax.stop_gradient(target)
+    rm0 = jax.lax.stop_gradient(ray_map)
+    ash = jnp.broadcast_to(rm0.alpha_sh, target.shape)
+    lo = jnp.log(ash * 1e-13)  # Phi(lo) > target: near the edge
+    hi = jnp.log(jnp.pi - ash)  # Phi(hi) = 0 < target
+
+    def body(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        above = rm0.escape_angle(ash + jnp.exp(mid)) > t0
+        return jnp.where(above, mid, lo), jnp.where(above, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, _BISECTIONS, body, (lo, hi))
+    a0 = jax.lax.stop_gradient(ash + jnp.exp(0.5 * (lo + hi)))
+    phi0, slope = jax.jvp(ray_map.escape_angle, (a0,), (jnp.ones_like(a0),))
+    return a0 - (phi0 - target) / slope
+
+
+def point_lens_magnification(u: ArrayLike):
+    """Weak-field point-lens magnifications $(\\mu_+, \\mu_-)$ at source offset `u` in
+    Einstein angles: $\\mu_\\pm = 1/2 \\pm (u^2 + 2)/(2u\\sqrt{u^2 + 4})$, total
+    $|\\mu_+| + |\\mu_-| = (u^2 + 2)/(u\\sqrt{u^2 + 4})$. $\\mu_-$ is negative (parity)."""
+    u = jnp.asarray(u, jnp.result_type(float, u))
+    a = (u * u + 2.0) / (2.0 * u * jnp.sqrt(u * u + 4.0))
+    return 0.5 + a, 0.5 - a
+
+
+def magnification(p: Float[Array, "... 2"], ray_map: RayMap) -> Float[Array, "..."]:
+    """Signed magnification (solid-angle ratio; negative for mirrored images) of the
+    image at image-plane point `p` (radians, see `lens_map`) for the camera of
+    `ray_map`, from `jax.jacfwd` of the lens map."""
+    p = jnp.asarray(p, ray_map.phi.dtype)
+    batch = p.shape[:-1]
+    flat = p.reshape(-1, 2)
+
+    def one(pp):
+        jac = jax.jacfwd(lens_map)(pp, ray_map)
+        q = lens_map(pp, ray_map)
+        alpha = jnp.sqrt(pp[0] ** 2 + pp[1] ** 2)
+        theta = jnp.sqrt(q[0] ** 2 + q[1] ** 2)
+        det = jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]
+        return (jnp.sin(alpha) / alpha) / (jnp.sin(theta) / theta) / det
+
+    return jax.vmap(one)(flat).reshape(batch)
+
+
+class LensedImages(eqx.Module):
+    """Images of point sources, a leading axis of two: `[0]` on the source's side
+    (target $\\Phi = (2m+1)\\pi - \\theta$), `[1]` on the other side ($+\\theta$).
+
+    **Fields:** `alpha` (angle from the hole's direction, radians), `beta` (azimuth
+    about it, camera frame, radians), `magnification` (signed solid-angle ratio),
+    `source_theta` (source angle from $+z$, radians); each `(2, ...)`.
+    """
+
+    alpha: Float[Array, "2 ..."]
+    beta: Float[Array, "2 ..."]
+    magnification: Float[Array, "2 ..."]
+    source_theta: Float[Array, "..."]
+
+    def pixels(self, camera: Camera):
+        """Pixel coordinates (column, row; fractional, pixel centres at $+0.5$) of the
+        images in a centred static `camera` (yaw = pitch = roll = 0, at its origin)."""
+        if not (camera.is_centred() and camera.at_origin()):
+            raise ValueError("LensedImages.pixels needs a centred camera at the origin")
+        r = camera.focal * jnp.tan(self.alpha)
+        x, y = r * jnp.cos(self.beta), r * jnp.sin(self.beta)
+        return x + 0.5 * camera.width, 0.5 * camera.height - y
+
+
+@eqx.filter_jit
+def point_source_images(
+    direction: Float[Array, "... 3"], ray_map: RayMap, *, order: int = 0
+) -> LensedImages:
+    """Images of sources at infinity in camera-frame `direction`s (3-vectors, $+z$
+    behind the hole) for the static camera of `ray_map`
+    (`RayMap.build(distance, accuracy=...)`, distance in units of R_S).
+
+    **Arguments:** `direction (..., 3)`; `ray_map`; `order` (static): 0 for the
+    primary and secondary images, $m \\ge 1$ for the relativistic pair near the shadow.
+
+    **Returns:** `LensedImages`. Works under `jit`, `vmap`, `grad`.
+    """
+    if order < 0:
+        raise ValueError(f"order={order!r} must be >= 0")
+    n = jnp.asarray(direction, jnp.result_type(float, direction))
+    rho = jnp.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2)
+    theta = jnp.arctan2(rho, n[..., 2])
+    beta = jnp.arctan2(n[..., 1], n[..., 0])
+    base = (2 * order + 1) * jnp.pi
+    targets = jnp.stack([base - theta, base + theta])
+    alpha = solve_image(targets, ray_map)
+    betas = jnp.stack([beta, beta + jnp.pi])
+    p = jnp.stack([alpha * jnp.cos(betas), alpha * jnp.sin(betas)], axis=-1)
+    mu = magnification(p, ray_map)
+    return LensedImages(alpha, betas, mu, theta)
