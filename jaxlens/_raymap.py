@@ -143,9 +143,10 @@ def _interpolate(gap, tau0, dtau, phi, slope):
     n = phi.shape[0]
     floor_gap = jnp.exp(tau0)
     tau = jnp.log(jnp.maximum(gap, floor_gap))
-    s = (tau - tau0) / dtau
-    i = jnp.clip(jnp.floor(s).astype(jnp.int32), 0, n - 2)
-    t = jnp.maximum(s - i, 0.0)  # may pass 1 by ~1e-13 / dtau at the far end
+    i = jnp.clip(jnp.floor((tau - tau0) / dtau).astype(jnp.int32), 0, n - 2)
+    # The fraction against the knot's own tau (no loss from |tau - tau0| ~ 30); it may
+    # pass 1 by ~1e-13 / dtau at the far end.
+    t = jnp.maximum((tau - (tau0 + i * dtau)) / dtau, 0.0)
     p0, p1 = phi[i], phi[i + 1]
     m0, m1 = slope[i] * dtau, slope[i + 1] * dtau
     t2 = t * t
