@@ -131,6 +131,17 @@ class Camera(eqx.Module):
         `jax_enable_x64` is on)."""
         if dtype is None:
             dtype = jnp.result_type(float, distance, fov)
+        given = _concrete(distance)
+        if given is not None and given.dtype.kind == "f" and np.all(given > 1.0):
+            # A valid radius that the dtype cannot tell from the horizon (1 + 1e-9 in
+            # float32): say so rather than report distance=1.0.
+            rounded = np.asarray(given, dtype=np.dtype(dtype))
+            if not np.all(rounded > 1.0):
+                bad = float(np.asarray(given)[~(rounded > 1.0)].flat[0])
+                raise ValueError(
+                    f"distance={bad!r} rounds to 1 (the horizon) in {np.dtype(dtype).name}: "
+                    "use float64 (units of R_S)"
+                )
         self.distance = _float(distance, dtype)
         self.fov = _float(fov, dtype)
         for name in ("width", "height", "supersample"):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from . import _io
-from ._cli_render import add_scene_options, scene_dict
+from ._cli_render import add_scene_options, pixel_dtype, scene_dict
 from ._scene import ANIMATION_PATHS, ANIMATION_RANGES
 
 FRAME_FORMATS = ("png", "jpg", "exr", "hdr")
@@ -60,7 +60,6 @@ def run(args):
     from . import cli
 
     cli.enable_x64()
-    import jax.numpy as jnp
 
     from ._camera import approach, orbit, pan, zoom
     from ._render import render_frames
@@ -90,7 +89,7 @@ def run(args):
     if frames_dir.exists() and not frames_dir.is_dir():
         raise ValueError(f"frames folder {str(frames_dir)!r} exists and is not a folder")
 
-    camera = build_camera(scene["camera"], dtype=jnp.float64 if args.float64 else jnp.float32)
+    camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
     sky = build_sky(scene["sky"])
     values = path_values(kind, start, stop, frames)
     step = {"approach": approach, "orbit": orbit, "pan": pan, "zoom": zoom}[kind]

@@ -126,6 +126,16 @@ def scene_dict(args) -> dict:
     return validate(data, source=source)
 
 
+def pixel_dtype(args, scene):
+    """float32 pixels unless --float64, or a distance float32 cannot tell from 1."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    if args.float64 or not np.float32(scene["camera"]["distance"]) > 1.0:
+        return jnp.float64
+    return jnp.float32
+
+
 def register(sub):
     p = sub.add_parser(
         "render",
@@ -141,7 +151,6 @@ def run(args):
     from . import cli
 
     cli.enable_x64()
-    import jax.numpy as jnp
 
     from ._render import render
     from ._scene import build_camera, build_sky
@@ -150,14 +159,14 @@ def run(args):
     if out.suffix.lower() == ".gif":
         raise ValueError(f"output {str(out)!r}: a GIF is an animation; use `jaxlens animate`")
     scene = scene_dict(args)
-    camera = build_camera(scene["camera"], dtype=jnp.float64 if args.float64 else jnp.float32)
+    camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
     sky = build_sky(scene["sky"])
     t = time.perf_counter()
     img = render(camera, sky, accuracy=scene["accuracy"])
     path = _io.write_image(out, img, exposure=scene["output"]["exposure"])
     c = scene["camera"]
     print(
-        f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:g} R_S, "
+        f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:.12g} R_S, "
         f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s)"
     )
     return 0

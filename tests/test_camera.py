@@ -175,6 +175,12 @@ def test_bad_camera_raises_naming_the_argument(kwargs, match):
         Camera(d, f, w, h, **args)
 
 
+def test_distance_too_close_for_the_dtype():
+    with pytest.raises(ValueError, match="distance=1.000000001 rounds to 1 .* float32"):
+        Camera(1 + 1e-9, 1.0, 4, 4, dtype=np.float32)
+    assert float(Camera(1 + 1e-9, 1.0, 4, 4).distance) == 1 + 1e-9  # float64 holds it
+
+
 def test_bad_batch_raises():
     cam = Camera(20.0, 1.0, 8, 6)
     with pytest.raises(ValueError, match="distance=0.5"):
