@@ -204,7 +204,8 @@ def error_stats(phi, status, ref_phi, ref_status, delta=None, kappa_max=1e5) -> 
     **Returns:** `median`, `max` |phi - phi_ref| (radians) over escaping rays;
     `max_wc`, the max over well-conditioned rays only ($1/|\\delta| \\le$ `kappa_max`:
     $\\Phi$ changes by about $\\epsilon/|\\delta|$ when the ray angle is rounded, so no
-    method can do better there); `agree`, the fraction of rays whose status
+    method can do better there); `max_far`, the max over rays with $|\\delta| \\ge 10^{-2}$,
+    away from the shadow edge; `agree`, the fraction of rays whose status
     (escaped / captured / unresolved) matches; `n_esc`, the number compared.
     """
     phi = np.asarray(phi, np.float64)
@@ -217,12 +218,13 @@ def error_stats(phi, status, ref_phi, ref_status, delta=None, kappa_max=1e5) -> 
         "agree": float(np.mean(status == ref_status)),
         "n_esc": int(both.sum()),
     }
-    if delta is not None:
-        wc = both & (np.abs(delta) >= 1.0 / kappa_max)
-        e = np.abs(phi - ref_phi)[wc]
-        out["max_wc"] = float(np.max(e)) if e.size else float("nan")
-    else:
-        out["max_wc"] = out["max"]
+    for key, kmax in (("max_wc", kappa_max), ("max_far", 1e2)):
+        if delta is None:
+            out[key] = out["max"]
+            continue
+        sel = both & (np.abs(delta) >= 1.0 / kmax)
+        e = np.abs(phi - ref_phi)[sel]
+        out[key] = float(np.max(e)) if e.size else float("nan")
     return out
 
 

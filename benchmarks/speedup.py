@@ -130,7 +130,10 @@ def main(argv=None):
     alpha = rng.uniform(0.001, 0.5, args.rays)
     ref_phi, ref_status = reference(alpha, np.full_like(alpha, D))
     phi_max = float(ref_phi[ref_status == ESCAPED].max())
-    chosen = jaxlens._trace.method_for("auto", ACCURACY)
+    chosen = repr(jaxlens._trace.method_for("auto", ACCURACY))
+    table_min = getattr(jaxlens._trace, "_TABLE_MIN_RAYS", None)
+    if table_min is not None and args.rays >= table_min:
+        chosen = f"the table (auto tabulates for >= {table_min} rays of one camera)"
 
     # name -> (jitted function of alpha, how it is called)
     h_max = phi_max * 1.001 / N_STEPS
@@ -138,7 +141,7 @@ def main(argv=None):
     cands = {
         "trace(accuracy=1e-9), jitted": (
             jax.jit(lambda a: _pair(jaxlens.trace(a, D, accuracy=ACCURACY))),
-            f"`jax.jit(lambda a: trace(a, {D}, accuracy=1e-9))`; picks {chosen!r}",
+            f"`jax.jit(lambda a: trace(a, {D}, accuracy=1e-9))`; auto picks {chosen}",
         ),
         "trace(accuracy=1e-9), as called": (
             lambda a: _pair(jaxlens.trace(a, D, accuracy=ACCURACY)),
