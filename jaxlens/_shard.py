@@ -76,8 +76,13 @@ def shard_map_rays(
 
     `fn` must be ray-wise: output row $i$ depends on input row $i$ only (true of
     `trace` and of any function that is elementwise or `vmap`ped over rays). Then the
-    result is the same as `jax.jit(fn)(*arrays)` on one device, whatever the device
-    count, the padding or the chunk size.
+    result is bit for bit that of `jax.jit(fn)` on one device on the same rays as one
+    flat batch, whatever the device count, the padding or the chunk size. (XLA may
+    round differently, by an ulp, when the rays come as a 2-D array or when a scalar
+    is folded into the program as a constant.)
+
+    With several processes (after `jax.distributed.initialize()`), every process calls
+    this with the same inputs; each one places only its own devices' shards.
 
     **Arguments:**
     - `fn`: a JAX-traceable function of the arrays; it receives the non-scalar
