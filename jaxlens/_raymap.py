@@ -50,6 +50,7 @@ class RayMap(eqx.Module):
     phi: Float[Array, " n"]
     slope: Float[Array, " n"]
     inner: tuple | None = None  # (tau0, dtau, phi, slope) of the captured side, if built
+    periapsis: tuple | None = None  # (u_min, slope) on the escaping knots, if built
     max_windings: float = eqx.field(static=True, default=10.0)
 
     @classmethod
@@ -82,7 +83,16 @@ class RayMap(eqx.Module):
             knots = knots_for(accuracy, span_bound)
         outer = _tabulate(d, alpha_sh, jnp.pi - alpha_sh, +1.0, knots)
         inner = _tabulate(d, alpha_sh, alpha_sh, -1.0, knots) if captured else None
-        return cls(d, alpha_sh, *outer, inner, max_windings)
+        peri = None
+        if captured:  # trace()'s full result: also 1/r_min of the escaping side
+            gap = jnp.exp(outer[0] + outer[1] * jnp.arange(knots, dtype=d.dtype))
+
+            def u_min(a):  # periapsis u_2(b(alpha)), smooth through alpha = pi/2
+                s = _exact.B_CRIT / _exact.impact_parameter(a, d)
+                return _exact.real_roots(s, (1.0 - s) * (1.0 + s))[1]
+
+            peri = jax.jvp(u_min, (alpha_sh + gap,), (gap,))
+        return cls(d, alpha_sh, *outer, inner, peri, max_windings)
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated escape angle (radians) at `alpha`; meaningful where
@@ -113,9 +123,13 @@ class RayMap(eqx.Module):
         unresolved = (alpha == self.alpha_sh) | ~(phi <= cap)
         status = jnp.where(unresolved, UNRESOLVED, jnp.where(escaped, ESCAPED, CAPTURED))
         phi = jnp.where(unresolved, cap, phi)
-        b = _exact.impact_parameter(alpha, self.distance)
-        turning = escaped & (jnp.cos(alpha) > 0) & (b > _exact.B_CRIT)
-        r0 = _exact.periapsis(jnp.where(turning, b, 2.0 * _exact.B_CRIT))
+        turning = escaped & (jnp.cos(alpha) > 0)
+        if self.periapsis is not None:
+            u = _interpolate(alpha - self.alpha_sh, self.tau0, self.dtau, *self.periapsis)
+            r0 = 1.0 / jnp.where(turning, u, 1.0)
+        else:
+            b = _exact.impact_parameter(alpha, self.distance)
+            r0 = _exact.periapsis(jnp.where(turning, b, 2.0 * _exact.B_CRIT))
         r_min = jnp.where(turning, r0, jnp.where(escaped, self.distance, 1.0))
         return TraceResult(phi, status.astype(jnp.int8), r_min.astype(phi.dtype))
 

@@ -85,3 +85,11 @@ def test_auto_uses_the_table_for_many_rays_with_the_same_answers():
     ok = np.abs(np.asarray(alpha) - ash) > 1e-6 * ash  # conditioning allows ~2e-10 there
     np.testing.assert_array_equal(np.asarray(auto.status)[ok], np.asarray(exact.status)[ok])
     assert float(jnp.max(jnp.abs(auto.phi - exact.phi)[ok])) < 1e-9
+
+
+def test_table_periapsis_matches_closed_form():
+    alpha = jnp.linspace(0.13, 3.0, 2000)
+    t = jl.RayMap.build(20.0, accuracy=1e-10, captured=True)(alpha)
+    e = _exact(alpha, 20.0)
+    esc = np.asarray(e.escaped)
+    np.testing.assert_allclose(np.asarray(t.r_min)[esc], np.asarray(e.r_min)[esc], rtol=1e-9)
