@@ -302,6 +302,12 @@ def plan(scene_like, **effects) -> Plan:
 
 
 def _plan(scene: EffectScene):
+    # Host-side decisions on concrete values: evaluate them now even inside a trace.
+    with jax.ensure_compile_time_eval():
+        return _plan_now(scene)
+
+
+def _plan_now(scene: EffectScene):
     cam = scene.camera
     reasons = []
     concrete = _is_concrete((cam, scene.motion)) and (
@@ -479,12 +485,16 @@ def _padded(idx, plan):
     return jnp.asarray(out)
 
 
-def render_scene_array(scene_like, *, plan: Plan | None = None, **effects) -> Float[Array, "H W 3"]:
+def render_scene_array(
+    scene_like, *, plan: Plan | None = None, ray_map: RayMap | None = None, **effects
+) -> Float[Array, "H W 3"]:
     """The image of a scene with its effects, as one traceable function (`jit`,
     `grad` with respect to any array field of camera, sky, motion and disk).
 
     **Arguments:** `scene_like` (`EffectScene`, or an object with `camera`, `sky`);
     `plan`: a `Plan` to follow (default: `plan(scene)`; under tracing the safe one);
+    `ray_map`: a `RayMap` of the camera's distance built already (default: built
+    inside, so gradients with respect to the distance flow through the table);
     `**effects`: `motion=`, `redshift=`, `disk=` overriding the scene's.
 
     **Returns:** linear radiance `(H, W, 3)` in the camera's dtype; captured rays 0
@@ -494,11 +504,13 @@ def render_scene_array(scene_like, *, plan: Plan | None = None, **effects) -> Fl
     if plan is None:
         plan, idx = _plan(scene)
     else:
-        idx = _disk_indices(scene, _static_rays(scene.camera, scene.motion)[0]) if (
-            plan.disk and plan.disk_rays is not None) else None  # fmt: skip
-    if plan.bare:
+        idx = None
+        if plan.disk and plan.disk_rays is not None:
+            with jax.ensure_compile_time_eval():
+                idx = _disk_indices(scene, _static_rays(scene.camera, scene.motion)[0])
+    if plan.bare and ray_map is None:
         return render_array(scene.camera, scene.sky, accuracy=scene.accuracy)
-    return _render(scene, plan, _padded(idx, plan))
+    return _render(scene, plan, _padded(idx, plan), ray_map)
 
 
 def render_scene(scene_like, **effects) -> np.ndarray:
@@ -528,8 +540,9 @@ def lowered_text(scene_like, **effects) -> str:
     p, idx = _plan(scene)
     if p.bare:
         fn = eqx.filter_jit(lambda s: render_array(s.camera, s.sky, accuracy=s.accuracy))
-        return fn.lower(scene).as_text(debug_info=True)
-    return _program.lower(scene, p, _padded(idx, p), _host_map(scene, p)).as_text(debug_info=True)
+        return fn.lower(scene).lowered.as_text(debug_info=True)
+    low = _program.lower(scene, p, _padded(idx, p), _host_map(scene, p))
+    return low.lowered.as_text(debug_info=True)
 
 
 # ------------------------------------------------------------------ scene files
