@@ -165,6 +165,12 @@ def main():
     first = time.perf_counter() - t
     warm_med, warm_min = timed(lambda: render(camera, sky), args.repeats)
     compile_s = first - warm_min
+    # CPU time of this process (all its threads) per warm render: unlike the wall time
+    # it does not grow when other programs share the cores.
+    c0 = time.process_time()
+    for _ in range(args.repeats):
+        render(camera, sky)
+    cpu = (time.process_time() - c0) / args.repeats
     assert img.shape == (H, W, 3) and np.all(np.isfinite(img))
 
     # Breakdown: the ray map alone, the geometry alone (a uniform sky needs no look-up),
@@ -209,6 +215,9 @@ def main():
         "| --- | --- |",
         f"| **warm render** (median of {args.repeats}; image on the host as NumPy) | "
         f"**{warm_med * 1e3:.1f} ms** (min {warm_min * 1e3:.1f} ms) |",
+        f"| CPU time of one warm render, all threads (the machine's load does not inflate "
+        f"it; an idle 2-core machine takes about half of it as wall time) | "
+        f"{cpu * 1e3:.1f} ms |",
         f"| compile (first call minus a warm call) | {compile_s:.1f} s |",
         f"| of which: ray map for this distance (3189 knots, float64) | {t_map[0] * 1e3:.1f} ms |",
         f"| of which: render block with a uniform sky (geometry and ray map look-ups) | "
