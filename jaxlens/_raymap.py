@@ -92,6 +92,13 @@ class RayMap(eqx.Module):
                 return _exact.real_roots(s, (1.0 - s) * (1.0 + s))[1]
 
             peri = jax.jvp(u_min, (alpha_sh + gap,), (gap,))
+        # Materialise the knots: otherwise XLA fuses the tail of the closed form into
+        # the gathers of the interpolation and recomputes it for every ray (~60x
+        # slower on CPU; optimization_barrier is expanded away before fusion there).
+        # A branch on a runtime predicate is a fusion boundary.
+        outer, inner, peri = jax.lax.cond(
+            d > 0, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), (outer, inner, peri)
+        )
         return cls(d, alpha_sh, *outer, inner, peri, max_windings)
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:

@@ -168,6 +168,10 @@ class Table(AbstractMethod):
             distance = eqx.error_if(
                 d, jnp.any(distance != d), "method='table' needs one distance for all rays"
             )
+        # Tie the distance to the rays (x * 0.0 is not folded for floats), so that a
+        # constant distance does not let XLA fold away the fusion boundary that keeps
+        # the knots from being recomputed per ray (see RayMap.build).
+        distance = distance + 0.0 * jnp.ravel(alpha)[0]
         ray_map = RayMap.build(
             distance, accuracy=self.accuracy, max_windings=max_windings, captured=True
         )
