@@ -71,16 +71,73 @@ try:
 except importlib.metadata.PackageNotFoundError:  # pragma: no cover
     __version__ = "0.0.0"
 
-from ._camera import Camera as Camera
-from ._camera import sky_direction as sky_direction
-from ._io import read_image as read_image
-from ._io import write_image as write_image
+from ._camera import (
+    Camera as Camera,
+)
+from ._camera import (
+    approach as approach,
+)
+from ._camera import (
+    orbit as orbit,
+)
+from ._camera import (
+    pan as pan,
+)
+from ._camera import (
+    rotation_matrix as rotation_matrix,
+)
+from ._camera import (
+    sky_direction as sky_direction,
+)
+from ._camera import (
+    stack_cameras as stack_cameras,
+)
+from ._camera import (
+    zoom as zoom,
+)
+from ._io import (
+    read_image as read_image,
+)
+from ._io import (
+    to_display as to_display,
+)
+from ._io import (
+    write_gif as write_gif,
+)
+from ._io import (
+    write_image as write_image,
+)
 from ._raymap import RayMap as RayMap
-from ._render import render as render
-from ._render import render_array as render_array
-from ._render import shade as shade
+from ._render import (
+    block_memory as block_memory,
+)
+from ._render import (
+    plan_blocks as plan_blocks,
+)
+from ._render import (
+    render as render,
+)
+from ._render import (
+    render_array as render_array,
+)
+from ._render import (
+    render_frames as render_frames,
+)
+from ._render import (
+    shade as shade,
+)
+from ._render import (
+    sky_directions as sky_directions,
+)
+from ._scene import Scene as Scene
+from ._scene import load_scene as load_scene
+from ._shard import shard_map_rays as shard_map_rays
+from ._shard import trace_sharded as trace_sharded
 from ._sky import (
     AbstractSky as AbstractSky,
+)
+from ._sky import (
+    Checker as Checker,
 )
 from ._sky import (
     DefaultSky as DefaultSky,
@@ -89,10 +146,25 @@ from ._sky import (
     GaussianStar as GaussianStar,
 )
 from ._sky import (
+    Panorama as Panorama,
+)
+from ._sky import (
+    PlaneImage as PlaneImage,
+)
+from ._sky import (
+    Rotated as Rotated,
+)
+from ._sky import (
     SkySum as SkySum,
 )
 from ._sky import (
+    StarField as StarField,
+)
+from ._sky import (
     Uniform as Uniform,
+)
+from ._sky import (
+    angles_from_direction as angles_from_direction,
 )
 from ._sky import (
     angular_distance as angular_distance,
@@ -100,3 +172,15 @@ from ._sky import (
 from ._sky import (
     direction_from_angles as direction_from_angles,
 )
+from ._sky import (
+    equirectangular as equirectangular,
+)
+
+
+def __getattr__(name):
+    # The notebook explorer needs ipywidgets (the `notebooks` extra): imported lazily.
+    if name == "Explorer":
+        from ._explorer import Explorer
+
+        return Explorer
+    raise AttributeError(f"module 'jaxlens' has no attribute {name!r}")
