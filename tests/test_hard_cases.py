@@ -89,3 +89,26 @@ def test_gradients_finite_everywhere():
         ga = jax.vmap(jax.grad(lambda a: jl.trace(a, d).phi))(alpha)
         gd = jax.vmap(jax.grad(lambda x, a: jl.trace(a, x).phi), (None, 0))(d, alpha)
         assert bool(jnp.all(jnp.isfinite(ga))) and bool(jnp.all(jnp.isfinite(gd))), d
+
+
+@pytest.mark.parametrize("fov_deg, d", [(1.0 / 3600.0, 1e12), (179.0, 3.0)])
+def test_tiny_and_huge_fields_of_view(fov_deg, d):
+    # 1 arcsecond at D = 1e12 (the ring is 0.29 arcsec) and 179 degrees at D = 3: the
+    # ring of a star behind the hole sits where the exact Einstein angle says.
+    w = h = 96
+    fov = math.radians(fov_deg)
+    cam = jl.Camera(d, fov, w, h, supersample=2)
+    lo, hi = float(jl.shadow_angle(d)) * (1 + 1e-9), math.pi / 2
+    for _ in range(80):  # Einstein angle: phi(alpha) = pi
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if float(jl.trace(mid, d).phi) > math.pi else (lo, mid)
+    ring = 0.5 * (lo + hi)
+    sigma = 0.02 * ring if fov_deg < 1 else math.radians(1.0)
+    img = np.asarray(jl.render_array(cam, jl.GaussianStar(sigma)))[..., 0]
+    assert np.all(np.isfinite(img))
+    f = (w / 2) / math.tan(fov / 2)
+    y, x = np.mgrid[0:h, 0:w]
+    r = np.hypot(x + 0.5 - w / 2, y + 0.5 - h / 2)
+    r_ring = float(np.sum(img * r) / np.sum(img))  # intensity-weighted radius, px
+    # the ring's width and pixelisation bias the mean radius by < ~1 px here
+    assert abs(r_ring - f * math.tan(ring)) < 1.5
