@@ -166,23 +166,23 @@ def shard_map_rays(
 
         bar = tqdm(total=n, unit="ray", unit_scale=True, desc="rays")
 
-    pieces = []
+    result = None  # host arrays for the whole batch, filled chunk by chunk
     pending = launch(0)
     for k in range(n_chunks):
         ahead = launch(k + 1) if k + 1 < n_chunks else None  # dispatched asynchronously
         m, out = pending
-        pieces.append(jax.tree.map(lambda x, m=m: _to_host(x)[:m], out))
+        host = jax.tree.map(_to_host, out)
+        if result is None:
+            result = jax.tree.map(lambda x: np.empty((n,) + x.shape[1:], x.dtype), host)
+        lo = k * size
+        for dst, src in zip(jax.tree.leaves(result), jax.tree.leaves(host)):
+            dst[lo : lo + m] = src[:m]
         if bar is not None:
             bar.update(m)
         pending = ahead
     if bar is not None:
         bar.close()
-
-    def join(*leaves):
-        whole = leaves[0] if len(leaves) == 1 else np.concatenate(leaves)
-        return whole.reshape(batch_shape + whole.shape[1:])
-
-    return jax.tree.map(join, *pieces)
+    return jax.tree.map(lambda x: x.reshape(batch_shape + x.shape[1:]), result)
 
 
 def trace_sharded(
