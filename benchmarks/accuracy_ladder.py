@@ -696,6 +696,31 @@ _STYLE = {
 }
 
 
+def _short(r):
+    """A short label for a plot point: family and the number that sets it."""
+    setting = r["setting"]
+    if r["family"] == "table":
+        return ("trace table " if setting.startswith("trace") else "RayMap ") + setting.split("=")[
+            -1
+        ]
+    if r["family"] in ("scipy", "diffrax", "numpy"):
+        return r["family"]
+    return f"{r['family']} {setting.split('=')[-1]}"
+
+
+def read_csv(path):
+    """Rows of a results CSV, numbers parsed."""
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            for k in r:
+                if k in ("family", "setting", "dtype", "set", "note"):
+                    continue
+                r[k] = None if r[k] in ("", "None") else float(r[k])
+            rows.append(r)
+    return rows
+
+
 def pareto_plot(rows, path):
     """Log-log max error (well-conditioned rays) vs rays/s, one panel per ray set."""
     import matplotlib
@@ -713,12 +738,14 @@ def pareto_plot(rows, path):
             err = max(r["max_err_wc"], 1e-17) if np.isfinite(r["max_err_wc"]) else 1.0
             face = color if r["dtype"] == "float64" else "none"
             ax.scatter(r["rays_per_s"], err, marker=marker, s=55, edgecolors=color, facecolors=face)
-            label = f"{r['family']} {r['setting'].split()[-1]}"
-            if r["dtype"] == "float32":
-                label += " f32"
-            ax.annotate(
-                label, (r["rays_per_s"], err), fontsize=6, xytext=(3, 2), textcoords="offset points"
-            )
+            if r["dtype"] == "float64":  # float32 points: open markers, unlabelled
+                ax.annotate(
+                    _short(r),
+                    (r["rays_per_s"], err),
+                    fontsize=6,
+                    xytext=(3, 2),
+                    textcoords="offset points",
+                )
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("rays per second (this machine)")
@@ -751,7 +778,13 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="fewer rays and settings (~1 min)")
     p.add_argument("--rays", type=int, default=None, help="rays per set for jaxlens methods")
     p.add_argument("--no-float32", action="store_true", help="float64 only")
+    p.add_argument(
+        "--plot-only", action="store_true", help="redraw pareto.png from the CSV, measure nothing"
+    )
     args = p.parse_args(argv)
+    if args.plot_only:
+        pareto_plot(read_csv(RESULTS / "accuracy_ladder.csv"), RESULTS / "pareto.png")
+        return None
     if args.rays is None:
         args.rays = 3_500 if args.quick else 10_500
     args.scipy_rays = 30 if args.quick else 150
