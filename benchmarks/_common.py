@@ -58,6 +58,14 @@ def machine() -> dict:
             text=True,
             check=True,
         ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(ROOT), "status", "--porcelain", "--", "jaxlens"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        if dirty:
+            commit += " + uncommitted changes in jaxlens/"
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
     versions = {"python": platform.python_version(), "jax": jax.__version__}
