@@ -49,6 +49,12 @@ _C = (1.0, 0.5, 0.375, 0.3125, 0.2734375)
 # I_n(pi/2) = int_0^{pi/2} h(sin t)^n dt, h(s) = s + 1/(1 + s).
 _I_HALF = (0.5 * math.pi, 2.0, 1.25 * math.pi - 4.0 / 3.0, 122.0 / 15.0 - 1.5 * math.pi)
 WEAK_ORDER = 3
+# The series costs ~50 ns (CPU) a ray more than a table look-up (three transcendentals
+# against one log) but needs no table (~8 ms CPU to build on the 2-core benchmark
+# machine): it is the cheaper path up to ~1.3e5 rays a view there
+# (benchmarks/results/effects.md). Larger views of a far field take the table, whose
+# build is then amortised.
+WEAK_MAX_SAMPLES = 1 << 17
 
 
 def _periapsis_u(b):
@@ -106,7 +112,10 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
         raise ValueError(f"order={order!r} must be 1, 2 or 3")
     alpha = jnp.asarray(alpha, jnp.result_type(float, alpha))
     d = jnp.asarray(distance, alpha.dtype)
-    b = d * jnp.abs(jnp.sin(alpha)) * jnp.sqrt(d / (d - 1.0))
+    sa = jnp.abs(jnp.sin(alpha))
+    ca = jnp.cos(alpha)
+    inward = ca > 0
+    b = d * sa * jnp.sqrt(d / (d - 1.0))
     ok = b > 2.0 * B_CRIT
     b_ = jnp.where(ok, b, 10.0 * B_CRIT)
     u2 = _periapsis_u(b_)
@@ -114,14 +123,13 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
     y0 = jnp.clip(u0 / u2, 0.0, 1.0)
     # cos t0 from u2 - u0 = G(u0) / [(u2 + u0) - (u2^2 + u2 u0 + u0^2)], G(u0) =
     # u0^2 (1 - u0) cot^2(alpha): no cancellation for a camera near the periapsis.
-    cot = jnp.cos(alpha) / jnp.where(ok, jnp.sin(alpha), 1.0)
+    cot = ca / jnp.where(ok, sa, 1.0)
     g0 = u0 * u0 * ((d - 1.0) / d) * cot * cot
     du = g0 / ((u2 + u0) - (u2 * u2 + u2 * u0 + u0 * u0))
     c0 = jnp.sqrt(jnp.clip(du * (u2 + u0), 0.0, None)) / u2
     t0, terms = weak_field_terms(y0, jnp.minimum(c0, 1.0))
     phi_t = sum(_C[n] * u2**n * terms[n] for n in range(order + 1))
     phi_h = sum(_C[n] * u2**n * _I_HALF[n] for n in range(order + 1))
-    inward = jnp.cos(alpha) > 0
     phi = jnp.where(inward, 2.0 * phi_h - phi_t, phi_t)
     x = 1.5 * u2
     length = jnp.where(inward, jnp.pi - t0, t0)
@@ -349,7 +357,13 @@ def _plan_now(scene: EffectScene):
     else:
         _, bound = jax.jit(weak_field_escape_angle)(alpha_s, cam.distance)
         weak_bound = float(jnp.max(bound))
-        if weak_bound < scene.accuracy:
+        if weak_bound < scene.accuracy and samples > WEAK_MAX_SAMPLES:
+            geometry = "table"
+            reasons.append(
+                f"weak-field bound {weak_bound:.2e} rad < accuracy, but {samples} rays > "
+                f"{WEAK_MAX_SAMPLES}: the table's build is amortised, its look-up is cheaper"
+            )
+        elif weak_bound < scene.accuracy:
             geometry = "weak_field"
             reasons.append(
                 f"every ray in view has a far periapsis: weak-field series bound "
@@ -411,8 +425,8 @@ def _render(scene: EffectScene, plan: Plan, idx, ray_map: RayMap | None = None):
         if plan.geometry == "table":
             if ray_map is None:
                 ray_map = RayMap.build(d, accuracy=scene.accuracy)
-            res = ray_map(alpha_s)
-            phi, escaped = res.phi, res.escaped
+            phi = ray_map.escape_angle(alpha_s)
+            escaped = alpha_s > ray_map.alpha_sh
         elif plan.geometry == "weak_field":
             phi, _ = weak_field_escape_angle(alpha_s, d)
             escaped = None

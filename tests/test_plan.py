@@ -78,6 +78,15 @@ def test_weak_field_only_below_its_bound(accuracy):
     assert near.geometry == "table" and not math.isfinite(near.weak_bound)
 
 
+def test_large_far_view_takes_the_table():
+    # The series meets the accuracy, but the view is past the measured break-even size:
+    # the table's build is amortised and its look-up is cheaper a ray.
+    big = jl.Camera(1e4, math.radians(2.0), 640, 480, yaw=math.radians(5.0))
+    p = C.plan(C.EffectScene(big, STAR))
+    assert p.samples > C.WEAK_MAX_SAMPLES and p.weak_bound < 1e-8
+    assert p.geometry == "table" and any("amortised" in r for r in p.reasons)
+
+
 def test_weak_field_image_matches_the_table():
     weak = C.EffectScene(FAR, STAR, redshift=E.Redshift("bolometric"))
     assert C.plan(weak).geometry == "weak_field"
