@@ -226,6 +226,13 @@ class Plan:
     bare: bool
     reasons: tuple[str, ...]
 
+    def structure(self) -> "Plan":
+        """The plan with its value-dependent fields blanked: what fixes the program."""
+        return dataclasses.replace(
+            self, disk_rays=None if self.disk_rays is None else 0, samples=0, weak_bound=None,
+            reasons=(),
+        )  # fmt: skip
+
     def __str__(self):
         head = (
             f"geometry={self.geometry}, aberration={self.aberration}, redshift="
@@ -474,8 +481,14 @@ def _apply_disk(scene, plan, idx, rad, alpha_s, cb_s, sb_s, g_cam):
 
 
 @eqx.filter_jit
+def _compiled(scene, key, idx, ray_map):
+    return _render(scene, key, idx, ray_map)
+
+
 def _program(scene, plan, idx, ray_map):
-    return _render(scene, plan, idx, ray_map)
+    """The compiled program of `plan`, keyed by its structure alone (a new camera,
+    disk-ray count or bound reuses it; a new gather size among 16 recompiles)."""
+    return _compiled(scene, plan.structure(), idx, ray_map)
 
 
 @eqx.filter_jit
@@ -555,7 +568,7 @@ def lowered_text(scene_like, **effects) -> str:
     if p.bare:
         fn = eqx.filter_jit(lambda s: render_array(s.camera, s.sky, accuracy=s.accuracy))
         return fn.lower(scene).lowered.as_text(debug_info=True)
-    low = _program.lower(scene, p, _padded(idx, p), _host_map(scene, p))
+    low = _compiled.lower(scene, p.structure(), _padded(idx, p), _host_map(scene, p))
     return low.lowered.as_text(debug_info=True)
 
 
