@@ -147,13 +147,16 @@ class DiskHits(eqx.Module):
 
     **Fields:** `hit` (bool), `radius` (units of R_S, of the crossing seen),
     `crossing` (its number $k$: 0 direct, 1 secondary, ...; $-1$ without a hit),
-    `g` ($\\nu_\\infty/\\nu_{em}$ of the light from there), `lz` (the photon's angular
-    momentum about the disk axis per unit energy, units of R_S).
+    `azimuth` (of that crossing in the ray's plane, from the camera's position,
+    radians: above $\\pi/2$ it lies behind the hole), `g` ($\\nu_\\infty/\\nu_{em}$ of
+    the light from there), `lz` (the photon's angular momentum about the disk axis per
+    unit energy, units of R_S).
     """
 
     hit: Array
     radius: Float[Array, "..."]
     crossing: Int[Array, "..."]
+    azimuth: Float[Array, "..."]
     g: Float[Array, "..."]
     lz: Float[Array, "..."]
 
@@ -219,7 +222,9 @@ def trace_disk(
     # photon angular momentum: minus that of the traced (backward) ray, b (e0 x e_perp)
     lz = -b * (sb * n[0] - cb * n[1])
     g = disk_redshift(radius, lz)
-    return DiskHits(hit, radius, jnp.where(hit, first, -1).astype(jnp.int32), g, lz)
+    azimuth = phi0 + jnp.pi * sel.astype(dt)
+    crossing = jnp.where(hit, first, -1).astype(jnp.int32)
+    return DiskHits(hit, radius, crossing, azimuth, g, lz)
 
 
 def disk_radiance(

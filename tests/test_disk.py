@@ -72,23 +72,29 @@ def test_edge_on_far_side_against_the_exact_orbit():
         np.testing.assert_allclose(_hits(alpha, beta, disk).radius, h.radius, rtol=1e-9)
 
 
-def test_inner_edge_image_edge_on():
-    # The far side's inner edge r_in = 3 is seen where the exact orbit reaches r = 3 at
-    # azimuth pi (solved by bisection on the reference); just outside that angle the
-    # disk is hit, just inside it is not.
-    lo, hi = 0.09, 0.2
+@pytest.mark.parametrize("inclination", [0.0, 90.0])
+def test_inner_edge_image(inclination):
+    # The inner edge r_in = 3 is seen where the exact orbit reaches r = 3 at the crossing
+    # azimuth (pi/2 face-on, on the way in; pi edge-on, behind the hole on the way out),
+    # found by bisection on the mpmath reference; just outside that angle the disk is
+    # hit, just inside it is not.
+    target, branch = (math.pi / 2, 0) if inclination == 0.0 else (math.pi, 1)
 
-    def f(a):
-        # > 0: the ray reaches r = 3 on its way out only after azimuth pi (it is inside
-        # r = 3 behind the hole); < 0: before pi, or never (its periapsis is beyond 3)
+    def inside(a):
+        # True: at the crossing azimuth the ray is already within r = 3
         phis = _azimuth_at_radius(a, D, 3.0)
-        return phis[1] - math.pi if phis else -1.0
+        if not phis:  # the periapsis is beyond r = 3
+            return False
+        return phis[branch] < target if branch == 0 else phis[branch] > target
 
+    lo, hi = 0.09, 0.25
+    assert inside(lo) and not inside(hi)
     for _ in range(30):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if f(mid) > 0 else (lo, mid)
+        lo, hi = (mid, hi) if inside(mid) else (lo, mid)
     edge = 0.5 * (lo + hi)
-    disk = K.Disk(3.0, 40.0, math.pi / 2)
+    disk = K.Disk(3.0, 40.0, math.radians(inclination))
+    # 1e-4 relative in angle is ~1e-3 in radius, far above the RK4 error (~1e-7)
     h = _hits([edge * (1 - 1e-4), edge * (1 + 1e-4)], 1.0, disk)
     assert list(np.asarray(h.hit)) == [False, True]
 
@@ -123,6 +129,8 @@ def test_inclined_disk_images():
     up = hit & (k == 0) & (np.sin(beta) > 0.9)
     down = hit & (k == 0) & (np.sin(beta) < -0.9)
     assert up.any() and down.any()
+    phi = np.asarray(h.azimuth)
+    assert np.all(phi[up] > math.pi / 2) and np.all(phi[down] < math.pi / 2)
     second = hit & (k == 1)
     assert second.sum() > 50
     # secondary hits lie close to the shadow edge
