@@ -95,6 +95,53 @@ from ._camera import (
 from ._camera import (
     zoom as zoom,
 )
+from ._compose import (
+    EffectScene as EffectScene,
+)
+from ._compose import (
+    Plan as Plan,
+)
+from ._compose import (
+    load_effect_scene as load_effect_scene,
+)
+from ._compose import (
+    plan as plan,
+)
+from ._compose import (
+    render_scene as render_scene,
+)
+from ._compose import (
+    render_scene_array as render_scene_array,
+)
+from ._disk import Disk as Disk
+from ._disk import trace_disk as trace_disk
+from ._effects import (
+    BlackbodyStars as BlackbodyStars,
+)
+from ._effects import (
+    CircularOrbit as CircularOrbit,
+)
+from ._effects import (
+    RadialInfall as RadialInfall,
+)
+from ._effects import (
+    Redshift as Redshift,
+)
+from ._effects import (
+    aberrate as aberrate,
+)
+from ._effects import (
+    blackbody_rgb as blackbody_rgb,
+)
+from ._effects import (
+    doppler_factor as doppler_factor,
+)
+from ._effects import (
+    frequency_ratio as frequency_ratio,
+)
+from ._effects import (
+    static_blueshift as static_blueshift,
+)
 from ._io import (
     read_image as read_image,
 )
@@ -106,6 +153,15 @@ from ._io import (
 )
 from ._io import (
     write_image as write_image,
+)
+from ._lensmap import (
+    magnification as magnification,
+)
+from ._lensmap import (
+    point_lens_magnification as point_lens_magnification,
+)
+from ._lensmap import (
+    point_source_images as point_source_images,
 )
 from ._raymap import RayMap as RayMap
 from ._render import (
@@ -131,6 +187,7 @@ from ._render import (
 )
 from ._scene import Scene as Scene
 from ._scene import load_scene as load_scene
+from ._shard import ray_mesh as ray_mesh
 from ._shard import shard_map_rays as shard_map_rays
 from ._shard import trace_sharded as trace_sharded
 from ._sky import (
