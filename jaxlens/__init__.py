@@ -154,6 +154,9 @@ from ._io import (
 from ._io import (
     write_image as write_image,
 )
+from ._io import (
+    write_video as write_video,
+)
 from ._lensmap import (
     magnification as magnification,
 )

@@ -1,5 +1,5 @@
-"""Image files through OpenImageIO (and animated GIFs through Pillow): plain Python at
-the edges, never jitted.
+"""Image files through OpenImageIO, animated GIFs through Pillow and MP4 videos through
+PyAV (the optional `video` extra): plain Python at the edges, never jitted.
 
 Every file is written atomically: to a hidden temporary file in the destination
 folder, which is renamed over the destination (`os.replace`) only once it is complete,
@@ -7,7 +7,9 @@ and removed on any failure, Ctrl-C included. A reader never sees a half-written 
 """
 
 import contextlib
+import fractions
 import io
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -17,6 +19,12 @@ import numpy as np
 FLOAT_FORMATS = {".exr", ".hdr", ".tif", ".tiff"}
 DISPLAY_FORMATS = {".png", ".jpg", ".jpeg"}
 WRITE_FORMATS = FLOAT_FORMATS | DISPLAY_FORMATS
+ANIMATION_FORMATS = {".gif", ".mp4"}
+
+
+class MissingExtraError(ImportError, ValueError):
+    """An optional dependency is not installed; the message names the extra to install.
+    A `ValueError` too, so the command line reports it as one line."""
 
 
 def _oiio():
@@ -54,8 +62,8 @@ def check_output_path(path) -> Path:
     """
     path = Path(path)
     ext = path.suffix.lower()
-    if ext not in WRITE_FORMATS | {".gif"}:
-        valid = ", ".join(sorted(WRITE_FORMATS | {".gif"}))
+    if ext not in WRITE_FORMATS | ANIMATION_FORMATS:
+        valid = ", ".join(sorted(WRITE_FORMATS | ANIMATION_FORMATS))
         raise ValueError(f"output {str(path)!r} has an unsupported extension {ext!r}; use one of "
                          f"{valid}")  # fmt: skip
     folder = path.parent
@@ -119,6 +127,8 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     ext = path.suffix.lower()
     if ext == ".gif":
         raise ValueError(f"{str(path)!r}: write GIF animations with write_gif")
+    if ext == ".mp4":
+        raise ValueError(f"{str(path)!r}: write MP4 videos with write_video")
     img = np.asarray(image, np.float32)
     if img.ndim == 2:
         img = img[..., None]
@@ -185,6 +195,95 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
             tmp, format="GIF", save_all=True, append_images=images[1:],
             duration=max(int(round(1000.0 / fps)), 20), loop=loop, disposal=1,
         )  # fmt: skip
+    return path
+
+
+def _av():
+    """PyAV, imported on first use: the optional `video` extra."""
+    try:
+        import av
+    except ImportError as e:
+        raise MissingExtraError(
+            "writing MP4 video needs PyAV: pip install 'jaxlens[video]' (or pip install av)",
+            name="av",
+        ) from e
+    return av
+
+
+def require_video() -> None:
+    """Check that MP4 video can be written (PyAV is installed); raises
+    `MissingExtraError` naming the extra to install otherwise."""
+    _av()
+
+
+def _video_codec(av) -> str:
+    """The encoder: H.264 (`libx264`, in PyAV's binary wheels) or, in an FFmpeg built
+    without it, MPEG-4 Part 2 (`mpeg4`, always built in)."""
+    try:
+        av.codec.Codec("libx264", "w")
+    except Exception:  # av.codec.codec.UnknownCodecError, or an FFmpeg without x264
+        return "mpeg4"
+    return "libx264"
+
+
+def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Path:
+    """Write an MP4 video of linear frames (PyAV), atomically.
+
+    The frames get the exposure ($2^{exposure}$), the sRGB transfer and 8 bits, as
+    for `write_gif`, and are encoded as H.264 (`libx264`, constant quality CRF 18,
+    close to visually lossless) in 4:2:0 YUV (`yuv420p`, BT.709 limited range, tagged
+    so): the format every player and browser plays. Where the FFmpeg inside PyAV
+    lacks libx264 (PyAV's binary wheels have it), the encoder is `mpeg4` (MPEG-4 Part
+    2, fixed quantiser 2). 4:2:0 needs an even width and height: an odd width (height)
+    is padded by repeating the last column (row), so the video is then one pixel wider
+    (taller) than the frames. PyAV is the optional `video` extra
+    (`pip install 'jaxlens[video]'`); without it this raises `MissingExtraError`
+    (an `ImportError` and a `ValueError`) saying so.
+
+    **Arguments:** `path` (.mp4); `frames`: `(N, H, W, 3)` linear radiance; `exposure`
+    (stops); `fps`: frames a second, 0.001 to 1000 (kept as a fraction with a
+    denominator up to 1001: 29.97 is 2997/100).
+
+    **Returns:** the path written. Raises `ValueError` for an unusable path, frames,
+    exposure or fps. Never leaves a half-written file, also when interrupted.
+    """
+    path = check_output_path(path)
+    if path.suffix.lower() != ".mp4":
+        raise ValueError(f"{str(path)!r} is not a .mp4 file name")
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or min(frames.shape[:3]) < 1:
+        raise ValueError(f"frames of shape {frames.shape} are not (N, H, W, 3) with N, H, W >= 1")
+    if not np.issubdtype(frames.dtype, np.number) or np.iscomplexobj(frames):
+        raise ValueError(f"frames of dtype {frames.dtype} are not real numbers")
+    if not math.isfinite(exposure):
+        raise ValueError(f"exposure={exposure!r} must be finite (stops)")
+    if not 1e-3 <= fps <= 1000:  # NaN too
+        raise ValueError(f"fps={fps!r} must be a number in [0.001, 1000]")
+    av = _av()
+    codec = _video_codec(av)
+    n, h, w, _ = frames.shape
+    pad = ((0, h % 2), (0, w % 2), (0, 0))
+    rate = fractions.Fraction(fps).limit_denominator(1001)
+    with atomic_output(path) as tmp:
+        with av.open(tmp, "w", format="mp4", container_options={"movflags": "+faststart"}) as c:
+            options = {"crf": "18"} if codec == "libx264" else {"qmin": "2", "qmax": "2"}
+            stream = c.add_stream(codec, rate=rate, options=options)
+            stream.width, stream.height = w + w % 2, h + h % 2
+            stream.pix_fmt = "yuv420p"
+            cc = stream.codec_context
+            cc.colorspace = cc.color_primaries = 1  # BT.709 matrix; primaries as sRGB's
+            cc.color_trc = 13  # IEC 61966-2-1, the sRGB transfer the data has
+            cc.color_range = 1  # limited ("MPEG", 16-235)
+            if codec == "mpeg4":
+                cc.bit_rate = 100_000_000  # a cap only: the fixed quantiser decides
+            for i in range(n):
+                rgb = np.pad(to_display(frames[i], exposure=exposure), pad, mode="edge")
+                frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+                frame = frame.reformat(format="yuv420p", dst_colorspace="itu709",
+                                       dst_color_range="MPEG")  # fmt: skip
+                frame.pts = i
+                c.mux(stream.encode(frame))
+            c.mux(stream.encode(None))  # flush the encoder
     return path
 
 
