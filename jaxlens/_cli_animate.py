@@ -1,5 +1,5 @@
-"""`jaxlens animate`: a frame sequence and an animated GIF of a camera path (approach,
-orbit, pan, zoom), all frames rendered in batched compiled calls."""
+"""`jaxlens animate`: a frame sequence and an animated GIF or an MP4 video of a camera
+path (approach, orbit, pan, zoom), all frames rendered in batched compiled calls."""
 
 import math
 import time
@@ -17,18 +17,19 @@ FRAME_FORMATS = ("png", "jpg", "exr", "hdr")
 def register(sub):
     p = sub.add_parser(
         "animate",
-        help="render an animation (frames and a GIF) of a camera path",
+        help="render an animation (frames and a GIF or MP4) of a camera path",
         description="Render the frames of a camera path and write them as a sequence and an "
-        "animated GIF. Paths: approach (distance, R_S, geometric steps), orbit (camera "
-        "position around the hole, degrees), pan (yaw, degrees), zoom (FOV, degrees, "
-        "geometric). Options override the scene file's [animation] table.",
+        "animated GIF (-o NAME.gif) or an H.264 MP4 video (-o NAME.mp4, needs PyAV: pip "
+        "install 'jaxlens[video]'). Paths: approach (distance, R_S, geometric steps), "
+        "orbit (camera position around the hole, degrees), pan (yaw, degrees), zoom (FOV, "
+        "degrees, geometric). Options override the scene file's [animation] table.",
     )
     add_scene_options(p, size_default="480x270", supersample_default=2)
     p.add_argument("--path", choices=ANIMATION_PATHS, help="camera path (default approach)")
     p.add_argument("--frames", type=int, help="number of frames (default 24)")
     p.add_argument("--start", type=float, help="first value of the path (see above)")
     p.add_argument("--stop", type=float, help="last value of the path")
-    p.add_argument("--fps", type=float, help="GIF frames a second (default 12)")
+    p.add_argument("--fps", type=float, help="frames a second of the GIF or MP4 (default 12)")
     p.add_argument("--frames-dir", help="folder for the frames (default: OUTPUT without its "
                    "extension, plus _frames)")  # fmt: skip
     p.add_argument("--frame-format", choices=FRAME_FORMATS, default="png",
@@ -66,8 +67,12 @@ def run(args):
     from ._scene import build_camera, build_sky
 
     out = _io.check_output_path(args.output)
-    if out.suffix.lower() != ".gif":
-        raise ValueError(f"output {str(out)!r} must be a .gif file (the frames go beside it)")
+    video = out.suffix.lower() == ".mp4"
+    if out.suffix.lower() not in _io.ANIMATION_FORMATS:
+        raise ValueError(f"output {str(out)!r} must be a .gif or .mp4 file (the frames go beside "
+                         "it)")  # fmt: skip
+    if video:
+        _io.require_video()  # before the rendering, not after it
     if args.frames is not None and not 1 <= args.frames <= 10000:
         raise ValueError(f"--frames {args.frames} is not valid: expected 1 to 10000")
     if args.fps is not None and not (math.isfinite(args.fps) and 0 < args.fps < 1000):
@@ -101,7 +106,8 @@ def run(args):
     _io.check_output_path(frames_dir / f"frame_0000.{args.frame_format}")
     for i, img in enumerate(images):
         _io.write_image(frames_dir / f"frame_{i:04d}.{args.frame_format}", img, exposure=exposure)
-    _io.write_gif(out, images, exposure=exposure, fps=fps)
+    write = _io.write_video if video else _io.write_gif
+    write(out, images, exposure=exposure, fps=fps)
     print(
         f"wrote {out} and {len(images)} frames in {frames_dir}/ ({kind} from {start:g} to "
         f"{stop:g}, {time.perf_counter() - t:.1f} s)"

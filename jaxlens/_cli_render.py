@@ -156,8 +156,9 @@ def run(args):
     from ._scene import build_camera, build_sky
 
     out = _io.check_output_path(args.output)
-    if out.suffix.lower() == ".gif":
-        raise ValueError(f"output {str(out)!r}: a GIF is an animation; use `jaxlens animate`")
+    if out.suffix.lower() in _io.ANIMATION_FORMATS:
+        kind = out.suffix[1:].upper()
+        raise ValueError(f"output {str(out)!r}: {kind} files are animations; use `jaxlens animate`")
     scene = scene_dict(args)
     camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
     sky = build_sky(scene["sky"])
