@@ -2,8 +2,8 @@
 
     python benchmarks/run_all.py [--quick]
 
-`--quick` (about 3 minutes on 2 cores) uses fewer rays and settings; the full run
-(about 10 minutes) writes the tables the README shows. Results go to
+`--quick` (about 6 minutes on 2 cores) uses fewer rays, settings, repeats and fit
+cases; the full run (about 25 minutes) writes the tables the README shows. Results go to
 `benchmarks/results/`.
 """
 
@@ -22,7 +22,14 @@ def main(argv=None):
     p.add_argument(
         "--only",
         nargs="*",
-        choices=("accuracy_ladder", "scaling", "speedup"),
+        choices=(
+            "accuracy_ladder",
+            "scaling",
+            "speedup",
+            "bench_render",
+            "bench_effects",
+            "bench_fit",
+        ),
         help="run only these benchmarks",
     )
     args = p.parse_args(argv)
@@ -30,6 +37,9 @@ def main(argv=None):
         "speedup": ["--rays", "200000"] if args.quick else [],
         "accuracy_ladder": ["--quick"] if args.quick else [],
         "scaling": ["--quick"] if args.quick else [],
+        "bench_render": ["--repeats", "5", "--skip-check"] if args.quick else [],
+        "bench_effects": ["--quick"] if args.quick else [],
+        "bench_fit": ["--cases", "3"] if args.quick else [],
     }
     failed = []
     for name, extra in plan.items():

@@ -142,6 +142,16 @@ from ._effects import (
 from ._effects import (
     static_blueshift as static_blueshift,
 )
+from ._fit import RS_SUN_M as RS_SUN_M
+from ._fit import EscapeTable as EscapeTable
+from ._fit import RingFit as RingFit
+from ._fit import distance_in_metres as distance_in_metres
+from ._fit import einstein_ring_angle as einstein_ring_angle
+from ._fit import fit_ring as fit_ring
+from ._fit import mass_from_distance as mass_from_distance
+from ._fit import read_observation as read_observation
+from ._fit import ring_image as ring_image
+from ._fit import schwarzschild_radius_m as schwarzschild_radius_m
 from ._io import (
     read_image as read_image,
 )
