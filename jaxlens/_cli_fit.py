@@ -2,6 +2,7 @@
 
 import json
 import math
+import sys
 
 
 def _positive(name):
@@ -55,6 +56,8 @@ def run(args):
 
     from ._fit import fit_ring
 
+    if sys.stderr.isatty():  # a fit is silent for ~20 s, most of it compiling
+        print(f"jaxlens fit: fitting {args.image} (compiling on first use) ...", file=sys.stderr)
     fit = fit_ring(args.image, star_sigma=sigma)
     out = fit.to_dict()
     lines = [f"fit of {args.image}", fit.summary()]
