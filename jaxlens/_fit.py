@@ -30,6 +30,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from ._exact import shadow_angle
+from ._io import read_pixels
 from ._trace import exact_for
 
 # ----------------------------------------------------------------------------- units
@@ -903,30 +904,8 @@ def read_observation(path) -> np.ndarray:
     **Returns:** float64 `(H, W)`; raises `ValueError` naming the file when it is
     missing, empty, not an image or unreadable.
     """
-    import OpenImageIO as oiio
-
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"image file {str(path)!r} does not exist")
-    if path.stat().st_size == 0:
-        raise ValueError(f"image file {str(path)!r} is empty")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        msg = " ".join(oiio.geterror().split()) or "unknown format"
-        raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        err = inp.geterror()
-        alpha = spec.alpha_channel
-    finally:
-        inp.close()
-    if data is None or err:
-        msg = " ".join((err or "no pixel data").split())
-        raise ValueError(f"{str(path)!r} is not a readable image (truncated or corrupt?): {msg}")
-    data = np.asarray(data, np.float64)
-    if data.ndim == 2:
-        data = data[..., None]
+    data, info = read_pixels(path)
+    data, alpha = np.asarray(data, np.float64), info["alpha"]
     colour = [i for i in range(data.shape[-1]) if i != alpha] or [0]
     return data[..., colour].mean(axis=-1)
 

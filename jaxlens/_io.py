@@ -296,6 +296,52 @@ def png_bytes(image: np.ndarray, *, exposure: float = 0.0) -> bytes:
     return buf.getvalue()
 
 
+def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, dict]:
+    """Every channel of an image file as stored, as float32 `(H, W, C)` (OpenImageIO;
+    integer formats normalised to [0, 1], no colour-space decoding), and a dict of what
+    the file says: `space` (colour space, lower case), `format`, `alpha` (the alpha
+    channel's index, -1 if none) and `unassociated` (whether the colour is not
+    multiplied by alpha; asked for with `unassociated_alpha`).
+
+    Raises `ValueError` naming the file when it is missing, empty, not an image,
+    truncated or otherwise unreadable.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"image file {str(path)!r} does not exist")
+    if path.stat().st_size == 0:
+        raise ValueError(f"image file {str(path)!r} is empty")
+    config = oiio.ImageSpec()
+    if unassociated_alpha:
+        config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        msg = " ".join(oiio.geterror().split()) or "unknown format"
+        raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
+    try:
+        spec = inp.spec()
+        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        err = inp.geterror()
+        info = {
+            "space": str(spec.get_string_attribute("oiio:ColorSpace", "")).lower(),
+            "format": str(spec.format),
+            "alpha": spec.alpha_channel,
+            "unassociated": bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0)),
+        }
+    finally:
+        inp.close()
+    if data is None or err:
+        msg = " ".join((err or "no pixel data").split())
+        raise ValueError(f"{str(path)!r} is not a readable image (truncated or corrupt?): {msg}")
+    data = np.asarray(data, np.float32)
+    if data.ndim == 2:
+        data = data[..., None]
+    if data.ndim != 3 or min(data.shape) < 1:
+        raise ValueError(f"{str(path)!r} has pixel data of shape {data.shape}; expected 2-D")
+    return data, info
+
+
 def read_image(path) -> np.ndarray:
     """Read an image file (any format OpenImageIO reads) as linear float32.
 
@@ -307,36 +353,13 @@ def read_image(path) -> np.ndarray:
     **Returns:** float32 `(H, W, C)`; raises `ValueError` naming the file when it is
     missing, not an image, truncated or otherwise unreadable.
     """
-    oiio = _oiio()
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"image file {str(path)!r} does not exist")
-    if path.stat().st_size == 0:
-        raise ValueError(f"image file {str(path)!r} is empty")
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)  # decode sRGB before associating alpha
-    inp = oiio.ImageInput.open(str(path), config)
-    if inp is None:
-        msg = " ".join(oiio.geterror().split()) or "unknown format"
-        raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
-    try:
-        spec = inp.spec()
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
-        err = inp.geterror()
-        space = str(spec.get_string_attribute("oiio:ColorSpace", "")).lower()
-        fmt = str(spec.format)
-        alpha = spec.alpha_channel
-        unassociated = bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0))
-    finally:
-        inp.close()
-    if data is None or err:
-        msg = " ".join((err or "no pixel data").split())
-        raise ValueError(f"{str(path)!r} is not a readable image (truncated or corrupt?): {msg}")
-    data = np.asarray(data, np.float32)
-    if data.ndim == 2:
-        data = data[..., None]
-    if data.ndim != 3 or min(data.shape) < 1:
-        raise ValueError(f"{str(path)!r} has pixel data of shape {data.shape}; expected 2-D")
+    data, info = read_pixels(path, unassociated_alpha=True)  # sRGB decoded before alpha
+    space, fmt, alpha, unassociated = (
+        info["space"],
+        info["format"],
+        info["alpha"],
+        info["unassociated"],
+    )
     integer = fmt.startswith(("uint", "int"))
     colour = [i for i in range(data.shape[-1]) if i != alpha][:3]
     if integer and ("srgb" in space or space == ""):

@@ -158,6 +158,19 @@ def _tabulate(d, alpha_sh, span, sign, n):
     return tau_lo, dtau, phi, slope
 
 
+def hermite(t, p0, p1, m0, m1):
+    """Cubic Hermite interpolant on [0, 1] of values `p0`, `p1` and slopes `m0`, `m1`
+    (per unit of `t`), at `t`; shared by `RayMap` and the renderer's `MapView`."""
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        (2.0 * t3 - 3.0 * t2 + 1.0) * p0
+        + (t3 - 2.0 * t2 + t) * m0
+        + (3.0 * t2 - 2.0 * t3) * p1
+        + (t3 - t2) * m1
+    )
+
+
 def _interpolate(gap, tau0, dtau, phi, slope):
     # Cubic Hermite in tau = ln(gap) on the uniform knots; below the first knot the
     # logarithmic law, linear in tau.
@@ -168,16 +181,7 @@ def _interpolate(gap, tau0, dtau, phi, slope):
     # The fraction against the knot's own tau (no loss from |tau - tau0| ~ 30); it may
     # pass 1 by ~1e-13 / dtau at the far end.
     t = jnp.maximum((tau - (tau0 + i * dtau)) / dtau, 0.0)
-    p0, p1 = phi[i], phi[i + 1]
-    m0, m1 = slope[i] * dtau, slope[i + 1] * dtau
-    t2 = t * t
-    t3 = t2 * t
-    inside = (
-        (2.0 * t3 - 3.0 * t2 + 1.0) * p0
-        + (t3 - 2.0 * t2 + t) * m0
-        + (3.0 * t2 - 2.0 * t3) * p1
-        + (t3 - t2) * m1
-    )
+    inside = hermite(t, phi[i], phi[i + 1], slope[i] * dtau, slope[i + 1] * dtau)
     gap_safe = jnp.where(gap > 0, gap, floor_gap)
     below = phi[0] + slope[0] * (jnp.log(gap_safe) - tau0)
     return jnp.where(gap < floor_gap, below, inside)

@@ -23,7 +23,7 @@ from jaxtyping import Array, Float
 
 from ._camera import Camera
 from ._fastmath import arctan2, sin_cos
-from ._raymap import RayMap
+from ._raymap import RayMap, hermite
 from ._sky import AbstractSky
 
 # Default number of area samples a compiled block holds (rows are grouped to fit).
@@ -72,16 +72,7 @@ class MapView(eqx.Module):
         i = jnp.clip(jnp.floor((tau - tau0) * self.inv_dtau).astype(jnp.int32), 0, n - 2)
         # The fraction against the knot's own tau: no loss from |tau - tau0| ~ 30.
         t = (tau - self.tau[i]) * self.inv_dtau
-        p0, p1 = self.phi[i], self.phi[i + 1]
-        m0, m1 = self.mslope[i], self.mslope[i + 1]
-        t2 = t * t
-        t3 = t2 * t
-        inside = (
-            (2.0 * t3 - 3.0 * t2 + 1.0) * p0
-            + (t3 - 2.0 * t2 + t) * m0
-            + (3.0 * t2 - 2.0 * t3) * p1
-            + (t3 - t2) * m1
-        )
+        inside = hermite(t, self.phi[i], self.phi[i + 1], self.mslope[i], self.mslope[i + 1])
         # Below the first knot: the logarithmic law, linear in tau.
         gap_safe = jnp.where(gap > 0, gap, floor_gap)
         below = self.phi[0] + self.mslope[0] * self.inv_dtau * (jnp.log(gap_safe) - tau0)
