@@ -2,6 +2,7 @@
 GIF and MP4 animations."""
 
 import os
+import stat
 import sys
 from pathlib import Path
 
@@ -346,3 +347,20 @@ def test_mp4_without_pyav_names_the_extra(tmp_path, monkeypatch):
             call()
         assert isinstance(e.value, ValueError) and e.value.name == "av"
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("name", ["a.png", "a.exr", "a.gif"])
+def test_written_files_get_the_usual_permissions(tmp_path, name):
+    """The temporary file is private (mkstemp, 0600); the result has the mode a plain
+    open() would give it under the process's umask, so others can read a render."""
+    mask = os.umask(0o022)
+    try:
+        frames = np.full((2, 4, 6, 3), 0.5, np.float32)
+        path = tmp_path / name
+        if name.endswith(".gif"):
+            _io.write_gif(path, frames)
+        else:
+            _io.write_image(path, frames[0])
+        assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    finally:
+        os.umask(mask)
