@@ -17,17 +17,17 @@ images from 256 x 256 to 800 x 600.
 """
 
 import argparse
-import datetime
 import json
 import math
 import os
 import pathlib
-import platform
 import subprocess
+import sys
 import tempfile
 import time
 import warnings
 
+import _common
 import numpy as np
 import OpenImageIO as oiio
 from scipy.integrate import IntegrationWarning, quad
@@ -131,7 +131,8 @@ def write_png(path, img, bits):
 
 
 def fit_file(path, sigma_deg):
-    argv = [str(ROOT / ".venv" / "bin" / "jaxlens"), "fit", str(path), "--json"]
+    # The `jaxlens` entry point of the environment running this script.
+    argv = [str(pathlib.Path(sys.executable).with_name("jaxlens")), "fit", str(path), "--json"]
     if sigma_deg is not None:
         argv += ["--star-sigma-deg", repr(sigma_deg)]
     env = dict(os.environ, JAXLENS_CACHE_DIR="")
@@ -176,19 +177,11 @@ def main():
 
 
 def write_report(rows, load):
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                                capture_output=True, text=True).stdout.strip()  # fmt: skip
-    except OSError:
-        commit = "?"
-    import jax
-
     lines = [
         "# Fit benchmark: Einstein rings from an independent renderer",
         "",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"load average {load:.1f} at the start; JAX {jax.__version__} (cpu), "
-        f"{datetime.date.today()}, commit {commit}. Produced by `benchmarks/bench_fit.py`.",
+        _common.machine_markdown().rstrip(),
+        f"- Load average {load:.1f} at the start. Produced by `benchmarks/bench_fit.py`.",
         "",
         "Each ring: scipy quadrature of the orbit (no jaxlens code), 12 x 12 samples a "
         "pixel, Gaussian noise, clipped to [0, 1], stored as a linear 8- or 16-bit grey "

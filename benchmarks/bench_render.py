@@ -26,12 +26,9 @@ part (their centroid); captured pixels have no direction. The strict angular err
 """
 
 import argparse
-import datetime
 import math
 import os
 import pathlib
-import platform
-import subprocess
 import sys
 import time
 
@@ -43,6 +40,7 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
+import _common  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -62,24 +60,14 @@ GOAL_S, GOAL_PX = 0.1, 0.01
 
 
 def machine() -> str:
-    cpu = platform.machine()
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        git = ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"]
-        commit = subprocess.run(git, capture_output=True, text=True, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "?"
+    """`_common.machine()` on one line, with the load average (this benchmark's wall
+    times move with it)."""
+    info = _common.machine()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return (
-        f"{cpu}, {len(os.sched_getaffinity(0))} cores usable, load average {load:.1f} at the "
-        f"start; JAX {jax.__version__} ({jax.default_backend()}), "
-        f"{datetime.date.today().isoformat()}, commit {commit}"
+        f"{info['cpu']}, {info['usable_cores']} cores usable, load average {load:.1f} at the "
+        f"start; JAX {info['versions']['jax']} ({jax.default_backend()}), {info['date']}, "
+        f"commit {info['commit']}"
     )
 
 
