@@ -420,11 +420,12 @@ def _unpack(theta, fixed_sigma, scale, setup: _Setup):
     return d, fov, sigma, rest[0] * scale, rest[1] * scale, rest[2]
 
 
-def _pack(d, fov, sigma, a, floor, scale, fit_sigma, ring_flux=1.0):
+def _pack(d, fov, sigma, a, floor, scale, fit_sigma):
+    """(D, fov, sigma, A, floor) -> internal parameters, ring_flux starting at 1."""
     v = [math.log(d - _D_MIN), math.log(fov / (math.pi - fov))]
     if fit_sigma:
         v.append(math.log(sigma))
-    return np.asarray(v + [a / scale, floor / scale, ring_flux])
+    return np.asarray(v + [a / scale, floor / scale, 1.0])
 
 
 def _model(theta, args, setup: _Setup):

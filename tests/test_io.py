@@ -89,13 +89,13 @@ def test_every_channel_count_writes_and_reads(tmp_path, ext, channels):
         assert np.abs(back[..., -1] - 0.8).max() < tol  # alpha kept
 
 
-def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
-    target = tmp_path / "out.exr"
-    target.write_bytes(b"previous")
+def _patch_image_output(monkeypatch, write_image, error=""):
+    """Make OpenImageIO's `ImageOutput` open and close real files but write through
+    `write_image(out, data)` (`out`: the real output) and report `error`."""
     oiio = _io._oiio()
     real = oiio.ImageOutput
 
-    class Failing:
+    class Patched:
         @staticmethod
         def create(name):
             out = real.create(name)
@@ -105,19 +105,29 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
                     return out.open(*a)
 
                 def write_image(self, data):
-                    # Half the file is on disk when the failure (or Ctrl-C) comes.
-                    out.write_scanlines(0, data.shape[0] // 2, 0, data[: data.shape[0] // 2])
-                    raise KeyboardInterrupt
+                    return write_image(out, data)
 
                 def close(self):
                     return out.close()
 
                 def geterror(self):
-                    return ""
+                    return error
 
             return Wrapper()
 
-    monkeypatch.setattr(oiio, "ImageOutput", Failing)
+    monkeypatch.setattr(oiio, "ImageOutput", Patched)
+
+
+def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
+    target = tmp_path / "out.exr"
+    target.write_bytes(b"previous")
+
+    def half_then_interrupt(out, data):
+        # Half the file is on disk when the failure (or Ctrl-C) comes.
+        out.write_scanlines(0, data.shape[0] // 2, 0, data[: data.shape[0] // 2])
+        raise KeyboardInterrupt
+
+    _patch_image_output(monkeypatch, half_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         write_image(target, _image())
     # The old file is untouched and no temporary file is left behind.
@@ -126,30 +136,7 @@ def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
 
 
 def test_write_failure_from_the_library_is_an_error_and_leaves_nothing(tmp_path, monkeypatch):
-    oiio = _io._oiio()
-    real = oiio.ImageOutput
-
-    class Broken:
-        @staticmethod
-        def create(name):
-            out = real.create(name)
-
-            class Wrapper:
-                def open(self, *a):
-                    return out.open(*a)
-
-                def write_image(self, data):
-                    return False
-
-                def close(self):
-                    return out.close()
-
-                def geterror(self):
-                    return "disk full"
-
-            return Wrapper()
-
-    monkeypatch.setattr(oiio, "ImageOutput", Broken)
+    _patch_image_output(monkeypatch, lambda out, data: False, error="disk full")
     with pytest.raises(OSError, match="disk full"):
         write_image(tmp_path / "x.png", _image())
     assert os.listdir(tmp_path) == []
