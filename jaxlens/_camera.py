@@ -23,22 +23,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._fastmath import arctan2, sin_cos
-
-
-def _concrete(x):
-    """The value of `x` as a NumPy array, or None for a tracer."""
-    if isinstance(x, jax.core.Tracer):
-        return None
-    try:
-        return np.asarray(x)
-    except Exception:  # pragma: no cover - other abstract values
-        return None
-
-
-def _is_zero(x) -> bool:
-    """True when `x` is concretely zero (host-side decision; False for tracers)."""
-    c = _concrete(x)
-    return c is not None and bool(np.all(c == 0))
+from ._util import as_float as _float
+from ._util import concrete as _concrete
+from ._util import is_zero as _is_zero
 
 
 def rotation_matrix(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> Float[Array, "3 3"]:
@@ -73,10 +60,6 @@ def rotate(m: Float[Array, "3 3"], n: Float[Array, "... 3"]) -> Float[Array, "..
     m = m.astype(n.dtype)
     x, y, z = n[..., 0], n[..., 1], n[..., 2]
     return jnp.stack([m[i, 0] * x + m[i, 1] * y + m[i, 2] * z for i in range(3)], axis=-1)
-
-
-def _float(x, dtype=None):
-    return jnp.asarray(x, dtype=dtype if dtype is not None else jnp.result_type(float, x))
 
 
 class Camera(eqx.Module):

@@ -41,6 +41,8 @@ from ._raymap import RayMap
 from ._render import render, render_array
 from ._sky import AbstractSky
 from ._trace import trace
+from ._util import concrete as _concrete
+from ._util import is_concrete as _is_concrete
 
 # ------------------------------------------------------------------ weak field
 
@@ -239,19 +241,6 @@ class Plan:
             f"{self.redshift}, disk={'traced' if self.disk else 'none'}"
         )
         return "\n".join([head] + [f"  - {r}" for r in self.reasons])
-
-
-def _concrete(x):
-    if isinstance(x, jax.core.Tracer):
-        return None
-    try:
-        return np.asarray(x)
-    except Exception:
-        return None
-
-
-def _is_concrete(tree) -> bool:
-    return all(_concrete(x) is not None for x in jax.tree.leaves(tree) if eqx.is_array(x))
 
 
 @eqx.filter_jit

@@ -40,13 +40,10 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from . import _effects
 from ._orbit import rk4_step
+from ._util import as_float as _farray
 
 _PEAK_X = (7.0 / 6.0) ** 2  # r / r_in at the profile's maximum
 _PEAK_F = _PEAK_X**-0.75 * (1.0 - 1.0 / math.sqrt(_PEAK_X)) ** 0.25
-
-
-def _farray(x):
-    return jnp.asarray(x, jnp.result_type(float, x))
 
 
 class Disk(eqx.Module):

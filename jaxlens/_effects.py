@@ -38,6 +38,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._sky import AbstractSky, SkySum, angular_distance, direction_from_angles
+from ._util import as_float as _farray
 
 # ---------------------------------------------------------------------- observers
 
@@ -325,14 +326,6 @@ def shifted_blackbody(temperature: ArrayLike, g: ArrayLike, mode: str = "spectra
 
 
 # ---------------------------------------------------------------------- skies
-
-
-def _farray(x):
-    """`x` (array, tracer, list, number) as a floating-point JAX array."""
-    if not isinstance(x, jax.Array):
-        x = np.asarray(x)
-    a = jnp.asarray(x)
-    return a if jnp.issubdtype(a.dtype, jnp.floating) else a.astype(jnp.result_type(float))
 
 
 class BlackbodyStars(AbstractSky):

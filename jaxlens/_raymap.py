@@ -18,6 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._exact import CAPTURED, ESCAPED, UNRESOLVED
+from ._util import fusion_barrier
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -92,13 +93,8 @@ class RayMap(eqx.Module):
                 return _exact.real_roots(s, (1.0 - s) * (1.0 + s))[1]
 
             peri = jax.jvp(u_min, (alpha_sh + gap,), (gap,))
-        # Materialise the knots: otherwise XLA fuses the tail of the closed form into
-        # the gathers of the interpolation and recomputes it for every ray (~60x
-        # slower on CPU; optimization_barrier is expanded away before fusion there).
-        # A branch on a runtime predicate is a fusion boundary.
-        outer, inner, peri = jax.lax.cond(
-            d > 0, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), (outer, inner, peri)
-        )
+        # Materialise the knots: otherwise XLA recomputes the closed form for every ray.
+        outer, inner, peri = fusion_barrier((outer, inner, peri), d)
         return cls(d, alpha_sh, *outer, inner, peri, max_windings)
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:

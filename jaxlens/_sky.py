@@ -15,8 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._camera import _concrete, rotate, rotation_matrix
+from ._camera import rotate, rotation_matrix
 from ._fastmath import arctan2
+from ._util import as_float as _farray
+from ._util import concrete as _concrete
 
 
 class AbstractSky(eqx.Module):
@@ -90,12 +92,6 @@ def _finite(name, value, unit):
     v = _concrete(value)
     if v is not None and not np.all(np.isfinite(v)):
         raise ValueError(f"{name}={v.tolist()!r} must be finite ({unit})")
-
-
-def _farray(x):
-    """`x` as a floating-point array (integers become the default float dtype)."""
-    a = jnp.asarray(x)
-    return a if jnp.issubdtype(a.dtype, jnp.floating) else a.astype(jnp.result_type(float))
 
 
 # ------------------------------------------------------------------ simple skies

@@ -1,0 +1,64 @@
+"""Small helpers every module shares: concrete values, float coercion, fusion barriers.
+
+One of each, so that "is this value known now?" and "make this a float array" mean
+the same thing in the camera, the skies, the effects and the disk.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def concrete(x) -> np.ndarray | None:
+    """The value of `x` as a NumPy array, or `None` when it is a tracer (inside `jit`,
+    `grad`, `vmap`): host-side decisions and eager checks use it."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    try:
+        return np.asarray(x)
+    except Exception:  # other abstract values (ShapeDtypeStruct, ...)
+        return None
+
+
+def is_concrete(tree) -> bool:
+    """True when every array leaf of `tree` has a concrete value."""
+    import equinox as eqx
+
+    return all(concrete(x) is not None for x in jax.tree.leaves(tree) if eqx.is_array(x))
+
+
+def is_zero(x) -> bool:
+    """True when `x` is concretely zero (False for tracers)."""
+    c = concrete(x)
+    return c is not None and bool(np.all(c == 0))
+
+
+def as_float(x, dtype=None) -> jax.Array:
+    """`x` (array, tracer, list, number) as a floating-point JAX array: in `dtype` if
+    given, else its own float dtype (integers and Python numbers take the default
+    float dtype, float64 under `jax_enable_x64`). Used as the `converter=` of fields."""
+    if dtype is not None:
+        return jnp.asarray(x, dtype)
+    if not isinstance(x, jax.Array):
+        x = np.asarray(x)
+    a = jnp.asarray(x)
+    return a if jnp.issubdtype(a.dtype, jnp.floating) else a.astype(jnp.result_type(float))
+
+
+def fusion_barrier(tree, anchor):
+    """`tree`, materialised: XLA will not fuse the code that made it into its consumers.
+
+    On CPU, XLA fuses cheap-looking producers (the tail of a closed form, a table
+    look-up) into every gather or broadcast that reads them and recomputes them per
+    element, which made the ray map ~60x slower. `lax.optimization_barrier` is expanded
+    away before fusion on CPU, but a `lax.cond` on a runtime predicate is a fusion
+    boundary on every backend. `anchor` is a runtime scalar (e.g. the camera distance,
+    tied to the data so that XLA cannot fold it); the branch taken returns `tree`, the
+    other (taken only for a NaN anchor, which the value checks reject) zeros.
+    """
+    return jax.lax.cond(
+        ~jnp.isnan(anchor),
+        lambda t: t,
+        lambda t: jax.tree.map(jnp.zeros_like, t),
+        tree,
+    )
