@@ -45,14 +45,6 @@ from ._camera import (
     stack_cameras as stack_cameras,
     zoom as zoom,
 )
-from ._compose import (
-    EffectScene as EffectScene,
-    Plan as Plan,
-    load_effect_scene as load_effect_scene,
-    plan as plan,
-    render_scene as render_scene,
-    render_scene_array as render_scene_array,
-)
 from ._disk import Disk as Disk, trace_disk as trace_disk
 from ._effects import (
     BlackbodyStars as BlackbodyStars,
@@ -89,14 +81,13 @@ from ._lensmap import (
     point_lens_magnification as point_lens_magnification,
     point_source_images as point_source_images,
 )
+from ._plan import Plan as Plan, plan as plan
 from ._raymap import RayMap as RayMap
 from ._render import (
     block_memory as block_memory,
-    plan_blocks as plan_blocks,
     render as render,
     render_array as render_array,
     render_frames as render_frames,
-    shade as shade,
     sky_directions as sky_directions,
 )
 from ._scene import Scene as Scene, load_scene as load_scene

@@ -23,9 +23,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._fastmath import arctan2, sin_cos
-from ._util import as_float as _float
-from ._util import concrete as _concrete
-from ._util import is_zero as _is_zero
+from ._util import as_float as _float, concrete as _concrete, is_zero as _is_zero
 
 
 def rotation_matrix(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> Float[Array, "3 3"]:

@@ -63,8 +63,8 @@ def run(args):
     cli.enable_x64()
 
     from ._camera import approach, orbit, pan, zoom
-    from ._render import render_frames
-    from ._scene import build_camera, build_sky
+    from ._render import render
+    from ._scene import Scene
 
     out = _io.check_output_path(args.output)
     video = out.suffix.lower() == ".mp4"
@@ -94,14 +94,13 @@ def run(args):
     if frames_dir.exists() and not frames_dir.is_dir():
         raise ValueError(f"frames folder {str(frames_dir)!r} exists and is not a folder")
 
-    camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
-    sky = build_sky(scene["sky"])
+    base = Scene.from_validated(scene, dtype=pixel_dtype(args, scene))
     values = path_values(kind, start, stop, frames)
     step = {"approach": approach, "orbit": orbit, "pan": pan, "zoom": zoom}[kind]
-    cameras = step(camera, values if kind == "approach" else np.radians(values))
+    cameras = step(base.camera, values if kind == "approach" else np.radians(values))
     t = time.perf_counter()
-    images = render_frames(cameras, sky, accuracy=scene["accuracy"])
-    exposure = scene["output"]["exposure"]
+    images = render(base.replace(camera=cameras))
+    exposure = base.exposure
     frames_dir.mkdir(exist_ok=True)
     _io.check_output_path(frames_dir / f"frame_0000.{args.frame_format}")
     for i, img in enumerate(images):

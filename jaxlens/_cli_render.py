@@ -153,19 +153,18 @@ def run(args):
     cli.enable_x64()
 
     from ._render import render
-    from ._scene import build_camera, build_sky
+    from ._scene import Scene
 
     out = _io.check_output_path(args.output)
     if out.suffix.lower() in _io.ANIMATION_FORMATS:
         kind = out.suffix[1:].upper()
         raise ValueError(f"output {str(out)!r}: {kind} files are animations; use `jaxlens animate`")
-    scene = scene_dict(args)
-    camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
-    sky = build_sky(scene["sky"])
+    v = scene_dict(args)
+    scene = Scene.from_validated(v, dtype=pixel_dtype(args, v))
     t = time.perf_counter()
-    img = render(camera, sky, accuracy=scene["accuracy"])
-    path = _io.write_image(out, img, exposure=scene["output"]["exposure"])
-    c = scene["camera"]
+    img = render(scene)
+    path = _io.write_image(out, img, exposure=scene.exposure)
+    c = v["camera"]
     print(
         f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:.12g} R_S, "
         f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s)"

@@ -40,6 +40,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from . import _effects
 from ._orbit import rk4_step
+from ._schema import Key, anything, greater, in_range, register
 from ._util import as_float as _farray
 
 _PEAK_X = (7.0 / 6.0) ** 2  # r / r_in at the profile's maximum
@@ -111,6 +112,36 @@ class Disk(eqx.Module):
         x = jnp.maximum(r / self.r_in.astype(r.dtype), 1.0)
         f = x**-0.75 * jnp.maximum(1.0 - 1.0 / jnp.sqrt(x), 0.0) ** 0.25
         return self.temperature.astype(r.dtype) * f / _PEAK_F
+
+
+_DEG = "a number in [0, 180] (degrees)"
+
+
+@register("disk", "thin", {
+    "r_in": Key("float", 3.0, greater(1.5), "a number > 1.5 (units of R_S)"),
+    "r_out": Key("float", 12.0, greater(1.5), "a number > r_in (units of R_S)"),
+    "inclination_deg": Key("float", 80.0, lambda v: 0.0 <= v <= 180.0, _DEG),
+    "position_angle_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
+    "temperature": Key("float", 8000.0, greater(0.0), "a number > 0 (K)"),
+    "brightness": Key("float", 1.0, lambda v: v >= 0.0, "a number >= 0"),
+    "crossings": Key("int", 3, in_range(0, 65), "a whole number from 1 to 64"),
+    "steps": Key("int", 48, in_range(1, 100_001), "a whole number from 2 to 100000"),
+}, check=lambda where, t: _check_radii(where, t))  # fmt: skip
+def _disk_from_table(t, base) -> Disk:
+    rad = math.radians
+    return Disk(
+        t["r_in"], t["r_out"], rad(t["inclination_deg"]),
+        position_angle=rad(t["position_angle_deg"]), temperature=t["temperature"],
+        brightness=t["brightness"], crossings=t["crossings"], steps=t["steps"],
+    )  # fmt: skip
+
+
+def _check_radii(where, t):
+    if not t["r_in"] < t["r_out"]:
+        raise ValueError(
+            f"{where} r_out = {t['r_out']!r} is not valid: expected a number > r_in "
+            f"= {t['r_in']!r} (units of R_S)"
+        )
 
 
 def disk_redshift(r: ArrayLike, lz: ArrayLike) -> Float[Array, "..."]:

@@ -28,6 +28,7 @@ of $I_\\nu/\\nu^3$, exactly a blackbody of temperature $gT$ (`"spectral"`); the
 `"bolometric"` mode keeps the colour and scales the intensity by $g^4$.
 """
 
+import abc
 import math
 from typing import ClassVar
 
@@ -37,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._schema import Key, anything, register
 from ._sky import AbstractSky, SkySum, angular_distance, direction_from_angles
 from ._util import as_float as _farray
 
@@ -118,18 +120,19 @@ class AbstractMotion(eqx.Module):
     aberration keeps the ray map axisymmetric about the hole's direction.
     """
 
-    radial: ClassVar[bool] = False
+    radial: eqx.AbstractClassVar[bool]
 
+    @abc.abstractmethod
     def speed(self, distance):
         """Speed relative to the static observer (units of c) at `distance` (R_S)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def direction(self, dtype) -> Float[Array, "3"]:
         """Unit vector of the motion, camera frame (the hole on $+z$)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def check_distance(self, distance) -> None:
-        """ValueError where the motion is impossible at a concrete `distance`."""
+        """ValueError where the motion is impossible at a concrete `distance` (R_S)."""
 
 
 class CircularOrbit(AbstractMotion):
@@ -141,6 +144,7 @@ class CircularOrbit(AbstractMotion):
     view; an increasing `Camera.azimuth` is the motion at `angle` $= \\pi$).
     """
 
+    radial: ClassVar[bool] = False
     angle: Float[Array, ""]
 
     def __init__(self, angle: ArrayLike = 0.0):
@@ -174,6 +178,21 @@ class RadialInfall(AbstractMotion):
     def direction(self, dtype):
         return jnp.asarray([0.0, 0.0, 1.0], dtype)
 
+    def check_distance(self, distance) -> None:
+        pass  # a fall from rest at infinity reaches every D > 1 below c
+
+
+@register("motion", "orbit", {
+    "angle_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
+})  # fmt: skip
+def _orbit_from_table(t, base) -> CircularOrbit:
+    return CircularOrbit(math.radians(t["angle_deg"]))
+
+
+@register("motion", "infall", {})
+def _infall_from_table(t, base) -> RadialInfall:
+    return RadialInfall()
+
 
 class Redshift(eqx.Module):
     """Frequency shift of all light (sky and disk) reaching the camera.
@@ -189,6 +208,16 @@ class Redshift(eqx.Module):
     def __check_init__(self):
         if self.mode not in ("bolometric", "spectral"):
             raise ValueError(f"mode={self.mode!r} must be 'bolometric' or 'spectral'")
+
+
+_MODES = ("spectral", "bolometric")
+
+
+@register("redshift", "redshift", {
+    "mode": Key("str", "spectral", lambda v: v in _MODES, " | ".join(_MODES)),
+})  # fmt: skip
+def _redshift_from_table(t, base) -> Redshift:
+    return Redshift(t["mode"])
 
 
 # ---------------------------------------------------------------------- colour

@@ -23,8 +23,6 @@ from jaxtyping import Array, ArrayLike, Float
 from ._camera import Camera, sky_direction
 from ._raymap import RayMap
 
-_BISECTIONS = 90
-
 
 def lens_map(p: Float[Array, "... 2"], ray_map: RayMap) -> Float[Array, "... 2"]:
     """Source position of the image-plane point `p` (radians, azimuthal equidistant
@@ -39,34 +37,6 @@ def lens_map(p: Float[Array, "... 2"], ray_map: RayMap) -> Float[Array, "... 2"]
     rho = jnp.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2)
     theta = jnp.arctan2(rho, n[..., 2])
     return (theta / rho)[..., None] * n[..., :2]
-
-
-def solve_image(target: ArrayLike, ray_map: RayMap) -> Float[Array, "..."]:
-    """The local angle $\\alpha > \\alpha_{sh}$ (radians) where the escape angle of
-    `ray_map` equals `target` (radians, > 0): the lens equation on the ray map.
-
-    Bisection in $\\tau = \\ln(\\alpha - \\alpha_{sh})$ ($\\Phi$ falls monotonically
-    from $+\\infty$ at the shadow edge to 0 at $\\alpha = \\pi$), then one Newton step
-    that carries the derivatives (implicit function theorem): works under `jit`,
-    `vmap`, `grad` and `jacfwd`.
-    """
-    target = jnp.asarray(target, ray_map.phi.dtype)
-    t0 = jax.lax.stop_gradient(target)
-    rm0 = jax.lax.stop_gradient(ray_map)
-    ash = jnp.broadcast_to(rm0.alpha_sh, target.shape)
-    lo = jnp.log(ash * 1e-13)  # Phi(lo) > target: near the edge
-    hi = jnp.log(jnp.pi - ash)  # Phi(hi) = 0 < target
-
-    def body(_, bracket):
-        lo, hi = bracket
-        mid = 0.5 * (lo + hi)
-        above = rm0.escape_angle(ash + jnp.exp(mid)) > t0
-        return jnp.where(above, mid, lo), jnp.where(above, hi, mid)
-
-    lo, hi = jax.lax.fori_loop(0, _BISECTIONS, body, (lo, hi))
-    a0 = jax.lax.stop_gradient(ash + jnp.exp(0.5 * (lo + hi)))
-    phi0, slope = jax.jvp(ray_map.escape_angle, (a0,), (jnp.ones_like(a0),))
-    return a0 - (phi0 - target) / slope
 
 
 def point_lens_magnification(u: ArrayLike):
@@ -142,7 +112,7 @@ def point_source_images(
     beta = jnp.arctan2(n[..., 1], n[..., 0])
     base = (2 * order + 1) * jnp.pi
     targets = jnp.stack([base - theta, base + theta])
-    alpha = solve_image(targets, ray_map)
+    alpha = ray_map.solve(targets)
     betas = jnp.stack([beta, beta + jnp.pi])
     p = jnp.stack([alpha * jnp.cos(betas), alpha * jnp.sin(betas)], axis=-1)
     mu = magnification(p, ray_map)

@@ -7,6 +7,10 @@ $-\\tau$ (the strong-deflection logarithm), so it is smooth and nearly linear in
 $\\tau$, and cubic Hermite interpolation with exact slopes (forward-mode autodiff of
 the closed form) reaches $10^{-10}$ rad with a few thousand knots. Below the first
 knot the logarithmic law is extrapolated linearly in $\\tau$.
+
+One type serves every consumer: the renderer interpolates it (`escape_angle`, in
+float32 through `astype`), `trace(method="table")` calls it, point images solve the
+lens equation on it (`solve`), and the fit differentiates it with respect to $D$.
 """
 
 import math
@@ -24,6 +28,7 @@ from ._util import fusion_barrier
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
 _HERMITE_C = math.pi / 384.0
 _REL_START = 1e-13  # first knot at alpha_sh * (1 + 1e-13): beyond float64 conditioning
+_BISECTIONS = 90  # halvings of the tau bracket in `solve` (span ~60 -> 1e-26)
 
 
 def knots_for(accuracy: float, span: float) -> int:
@@ -41,16 +46,19 @@ class RayMap(eqx.Module):
     to the distance (gradients flow through the knots and the shadow angle).
 
     **Fields:** `distance` (units of R_S), `alpha_sh` (shadow angle, radians), the
-    knot grid `tau0`, `dtau` and the knot values `phi`, `slope` ($d\\phi/d\\tau$).
+    knots `tau` ($\\tau_i = \\ln(\\alpha_i - \\alpha_{sh})$, uniform with step `dtau`),
+    and the knot values `phi` (radians) and `slope` ($d\\phi/d\\tau$). The knots are
+    stored, not recomputed from the first one, so a float32 copy (`astype`) takes each
+    interval's position against its own knot and keeps the table's accuracy.
     """
 
     distance: Float[Array, ""]
     alpha_sh: Float[Array, ""]
-    tau0: Float[Array, ""]
+    tau: Float[Array, " n"]
     dtau: Float[Array, ""]
     phi: Float[Array, " n"]
     slope: Float[Array, " n"]
-    inner: tuple | None = None  # (tau0, dtau, phi, slope) of the captured side, if built
+    inner: tuple | None = None  # (tau, dtau, phi, slope) of the captured side, if built
     periapsis: tuple | None = None  # (u_min, slope) on the escaping knots, if built
     max_windings: float = eqx.field(static=True, default=10.0)
 
@@ -86,7 +94,7 @@ class RayMap(eqx.Module):
         inner = _tabulate(d, alpha_sh, alpha_sh, -1.0, knots) if captured else None
         peri = None
         if captured:  # trace()'s full result: also 1/r_min of the escaping side
-            gap = jnp.exp(outer[0] + outer[1] * jnp.arange(knots, dtype=d.dtype))
+            gap = jnp.exp(outer[0])
 
             def u_min(a):  # periapsis u_2(b(alpha)), smooth through alpha = pi/2
                 s = _exact.B_CRIT / _exact.impact_parameter(a, d)
@@ -101,7 +109,40 @@ class RayMap(eqx.Module):
         """Interpolated escape angle (radians) at `alpha`; meaningful where
         `alpha > alpha_sh` (escaping rays), finite everywhere."""
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        return _interpolate(alpha - self.alpha_sh, self.tau0, self.dtau, self.phi, self.slope)
+        return _interpolate(alpha - self.alpha_sh, self.tau, self.dtau, self.phi, self.slope)
+
+    def astype(self, dtype) -> "RayMap":
+        """The same table in `dtype` (e.g. float32 for a float32 render of a table built
+        in float64); the knots keep their own positions, so interpolation error stays
+        the table's own plus the dtype's rounding of alpha."""
+        return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, self)
+
+    def solve(self, target: ArrayLike) -> Float[Array, "..."]:
+        """The local angle $\\alpha > \\alpha_{sh}$ (radians) at which the escape angle
+        equals `target` (radians, > 0): the lens equation on the table.
+
+        Bisection in $\\tau$ ($\\Phi$ falls monotonically from $+\\infty$ at the shadow
+        edge to 0 at $\\alpha = \\pi$), then one Newton step that carries the
+        derivatives (implicit function theorem): works under `jit`, `vmap`, `grad` and
+        `jacfwd`, with respect to `target` and the table (hence the distance).
+        """
+        target = jnp.asarray(target, self.phi.dtype)
+        t0 = jax.lax.stop_gradient(target)
+        rm0 = jax.lax.stop_gradient(self)
+        ash = jnp.broadcast_to(rm0.alpha_sh, target.shape)
+        lo = jnp.log(ash * 1e-13)  # Phi(lo) > target: near the edge
+        hi = jnp.log(jnp.pi - ash)  # Phi(hi) = 0 < target
+
+        def body(_, bracket):
+            lo, hi = bracket
+            mid = 0.5 * (lo + hi)
+            above = rm0.escape_angle(ash + jnp.exp(mid)) > t0
+            return jnp.where(above, mid, lo), jnp.where(above, hi, mid)
+
+        lo, hi = jax.lax.fori_loop(0, _BISECTIONS, body, (lo, hi))
+        a0 = jax.lax.stop_gradient(ash + jnp.exp(0.5 * (lo + hi)))
+        phi0, slope = jax.jvp(self.escape_angle, (a0,), (jnp.ones_like(a0),))
+        return a0 - (phi0 - target) / slope
 
     def horizon_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated azimuth (radians) at which a captured ray ($\\alpha < \\alpha_{sh}$)
@@ -128,7 +169,7 @@ class RayMap(eqx.Module):
         phi = jnp.where(unresolved, cap, phi)
         turning = escaped & (jnp.cos(alpha) > 0)
         if self.periapsis is not None:
-            u = _interpolate(alpha - self.alpha_sh, self.tau0, self.dtau, *self.periapsis)
+            u = _interpolate(alpha - self.alpha_sh, self.tau, self.dtau, *self.periapsis)
             r0 = 1.0 / jnp.where(turning, u, 1.0)
         else:
             b = _exact.impact_parameter(alpha, self.distance)
@@ -151,12 +192,12 @@ def _tabulate(d, alpha_sh, span, sign, n):
 
     # d phi / d tau = (d phi / d alpha) d alpha / d tau: one forward-mode pass.
     phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + sign * gap,), (sign * gap,))
-    return tau_lo, dtau, phi, slope
+    return tau_lo + dtau * jnp.arange(n, dtype=d.dtype), dtau, phi, slope
 
 
 def hermite(t, p0, p1, m0, m1):
     """Cubic Hermite interpolant on [0, 1] of values `p0`, `p1` and slopes `m0`, `m1`
-    (per unit of `t`), at `t`; shared by `RayMap` and the renderer's `MapView`."""
+    (per unit of `t`), at `t`."""
     t2 = t * t
     t3 = t2 * t
     return (
@@ -167,16 +208,18 @@ def hermite(t, p0, p1, m0, m1):
     )
 
 
-def _interpolate(gap, tau0, dtau, phi, slope):
+def _interpolate(gap, knots, dtau, phi, slope):
     # Cubic Hermite in tau = ln(gap) on the uniform knots; below the first knot the
     # logarithmic law, linear in tau.
     n = phi.shape[0]
+    tau0 = knots[0]
+    inv = 1.0 / dtau
     floor_gap = jnp.exp(tau0)
     tau = jnp.log(jnp.maximum(gap, floor_gap))
-    i = jnp.clip(jnp.floor((tau - tau0) / dtau).astype(jnp.int32), 0, n - 2)
+    i = jnp.clip(jnp.floor((tau - tau0) * inv).astype(jnp.int32), 0, n - 2)
     # The fraction against the knot's own tau (no loss from |tau - tau0| ~ 30); it may
     # pass 1 by ~1e-13 / dtau at the far end.
-    t = jnp.maximum((tau - (tau0 + i * dtau)) / dtau, 0.0)
+    t = jnp.maximum((tau - knots[i]) * inv, 0.0)
     inside = hermite(t, phi[i], phi[i + 1], slope[i] * dtau, slope[i + 1] * dtau)
     gap_safe = jnp.where(gap > 0, gap, floor_gap)
     below = phi[0] + slope[0] * (jnp.log(gap_safe) - tau0)

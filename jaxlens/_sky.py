@@ -17,8 +17,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._camera import rotate, rotation_matrix
 from ._fastmath import arctan2
-from ._util import as_float as _farray
-from ._util import concrete as _concrete
+from ._util import as_float as _farray, concrete as _concrete
 
 
 class AbstractSky(eqx.Module):

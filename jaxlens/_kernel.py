@@ -1,0 +1,291 @@
+"""The one traceable kernel: a block of pixel rows of a scene -> linear radiance.
+
+Every image jaxlens makes (a render, an animation frame, the explorer, `render_array`
+under `grad`) is this function on a block of rows, with the stages its `Plan` names:
+
+1. **samples**: the $k \\times k$ area samples of the block's pixels, camera frame
+   (`Camera.sample_x`, `sample_y`); local angle $\\alpha$ from the hole, orbital plane
+   $\\beta$, and one sample's size in $\\alpha$.
+2. **aberration** (a moving camera): the pixel directions boosted to the static
+   observer's frame; the static ray map stays one-dimensional.
+3. **redshift**: the camera's frequency ratio $g$ for light from infinity.
+4. **geometry**: the escape angle $\\Phi(\\alpha)$ from the plan's source: the ray map
+   (`RayMap`, built once per distance), the weak-field series, or the exact closed
+   form per ray (`trace`). Samples that straddle the shadow edge are weighted by the
+   fraction of their footprint outside it (a linear ramp over one sample in
+   $\\alpha$), so the edge carries gradient with respect to distance and field of view.
+5. **sky**: the sky's radiance in the escaping directions (frequency-shifted if asked).
+6. **disk**: rays that can reach the disk are followed through its plane.
+7. the mean over each pixel's samples.
+
+Stages are Python `if`s on the plan, never on traced values: a stage the scene does
+not name is not in the compiled program. Each runs in `jax.named_scope("jaxlens.<stage>")`.
+
+For a centred camera whose rays depend on $|x|$ and $|y|$ alone (static or radially
+moving, no disk), the per-ray work is done for one half of the columns and mirrored,
+and with `pair` a block of rows also yields its mirror rows in the bottom half: a
+quarter of the samples go through the map; the sky is looked up at every sample.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from . import _disk, _effects
+from ._exact import shadow_angle
+from ._fastmath import sin_cos
+from ._trace import trace
+from ._weak import weak_field_escape_angle
+
+
+def checked(scene):
+    """`scene` with its values checked where they are used: `eqx.error_if` on the
+    camera distance ($D > 1$, finite), the field of view ($0 <$ FOV $< \\pi$), a
+    circular orbit's distance ($D > 1.5$) and the disk radii ($1.5 < r_{in} < r_{out}$,
+    finite); a bad traced value raises at run time under `jit`, never a NaN image."""
+    cam = scene.camera
+    d = eqx.error_if(
+        cam.distance,
+        ~jnp.isfinite(cam.distance) | ~(cam.distance > 1.0),
+        "camera distance must be finite and > 1 (units of R_S; the horizon is at 1)",
+    )
+    fov = eqx.error_if(
+        cam.fov,
+        ~jnp.isfinite(cam.fov) | ~(cam.fov > 0.0) | ~(cam.fov < jnp.pi),
+        "field of view must be in (0, pi) radians, i.e. (0, 180) degrees",
+    )
+    if scene.motion is not None and not scene.motion.radial:
+        d = eqx.error_if(d, ~(d > 1.5), "a circular orbit needs distance > 1.5 (units of R_S)")
+    scene = eqx.tree_at(lambda s: (s.camera.distance, s.camera.fov), scene, (d, fov))
+    if scene.disk is not None:
+        r_in, r_out = scene.disk.r_in, scene.disk.r_out
+        r_in = eqx.error_if(
+            r_in,
+            ~(r_in > 1.5) | ~(r_in < r_out) | ~jnp.isfinite(r_out),
+            "disk radii must satisfy 1.5 < r_in < r_out < inf (units of R_S)",
+        )
+        scene = eqx.tree_at(lambda s: s.disk.r_in, scene, r_in)
+    return scene
+
+
+def coverage(alpha, alpha_sh, width):
+    """Fraction of a sample's footprint outside the shadow (a linear ramp over one
+    sample width `width` in alpha, radians), and the alpha of the escaping part's
+    centre, where the sample takes its radiance."""
+    cover = jnp.clip((alpha - alpha_sh) / width + 0.5, 0.0, 1.0)
+    edge = jnp.maximum(alpha, alpha_sh + 0.5 * width * (1.0 - cover))
+    return cover, edge
+
+
+def _to_static(scene, alpha, cb, sb):
+    """Moving-frame sample angles -> static-frame angles, the Doppler factor
+    $\\delta = \\sqrt{1-v^2}/(1 - v\\cos a')$ (also the local linear scale of the
+    aberration map, which is conformal) and nothing else."""
+    cam, motion = scene.camera, scene.motion
+    dt = alpha.dtype
+    v = motion.speed(cam.distance).astype(dt)
+    if motion.radial:
+        ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+        inv = 1.0 / (1.0 - v * ca)
+        cs = (ca - v) * inv
+        ss = sa * jnp.sqrt((1.0 - v) * (1.0 + v)) * inv
+        return jnp.arctan2(ss, cs), cb, sb, _effects.doppler_factor(ca, v)
+    e = motion.direction(dt)
+    sa = jnp.sin(alpha)
+    n = jnp.stack([sa * cb, sa * sb, jnp.cos(alpha)], axis=-1)
+    cos_a = n[..., 0] * e[0] + n[..., 1] * e[1] + n[..., 2] * e[2]
+    ns = _effects.aberrate(n, v, e)
+    rho = jnp.sqrt(ns[..., 0] ** 2 + ns[..., 1] ** 2)
+    safe = rho > 0
+    rho_ = jnp.where(safe, rho, 1.0)
+    cb_s = jnp.where(safe, ns[..., 0] / rho_, 1.0)
+    sb_s = jnp.where(safe, ns[..., 1] / rho_, 0.0)
+    return jnp.arctan2(rho, ns[..., 2]), cb_s, sb_s, _effects.doppler_factor(cos_a, v)
+
+
+def _escape_angle(scene, plan, ray_map, alpha):
+    d = scene.camera.distance
+    if plan.geometry == "table":
+        return ray_map.escape_angle(alpha)
+    if plan.geometry == "weak_field":
+        return weak_field_escape_angle(alpha, d)[0]
+    return trace(alpha, d, accuracy=scene.accuracy, method="exact").phi
+
+
+def _geometry(scene, plan, ray_map, x, y):
+    """Per-sample geometry at image-plane points `x, y` (pixels, one shape).
+
+    **Returns:** `(sin_phi, cos_phi, cb, sb, cover, g, alpha_s)`: the escape angle's
+    sine and cosine, the static-frame orbital plane, the shadow coverage, the camera's
+    frequency ratio (`None` without redshift) and the static-frame alpha.
+    """
+    cam = scene.camera
+    dt = x.dtype
+    f = cam.focal
+    alpha, cb, sb = cam._angles(x, y, oriented=not plan.centred)
+    # One sample's size in alpha: cos^2(angle off the image axis) / (f k); for an
+    # off-centre view the same to first order.
+    width = f / ((x * x + y * y + f * f) * cam.supersample)
+    g = None
+    if plan.aberration is not None:
+        with jax.named_scope("jaxlens.aberration"):
+            alpha, cb, sb, doppler = _to_static(scene, alpha, cb, sb)
+            width = width * doppler
+    if plan.redshift is not None:
+        with jax.named_scope("jaxlens.redshift"):
+            g = _effects.static_blueshift(cam.distance).astype(dt)
+            if plan.aberration is not None:
+                g = g * doppler
+            g = jnp.broadcast_to(g, alpha.shape)
+    with jax.named_scope(f"jaxlens.{plan.geometry}"):
+        if ray_map is not None:
+            alpha_sh = ray_map.alpha_sh.astype(dt)
+        else:
+            alpha_sh = shadow_angle(cam.distance).astype(dt)
+        cover, edge = coverage(alpha, alpha_sh, width)
+        phi = _escape_angle(scene, plan, ray_map, edge)
+    sin_phi, cos_phi = sin_cos(phi)
+    return sin_phi, cos_phi, cb, sb, cover, g, alpha
+
+
+def _symmetric(scene, plan, ray_map, row0, rows: int, pair: bool):
+    """Camera-frame directions, coverage and $g$ of the block through the mirror
+    symmetries of a centred camera: the per-ray work on one half of the columns."""
+    cam = scene.camera
+    xs = cam.sample_x()
+    ys = cam.sample_y(row0, rows)
+    half, odd = xs.shape[0] // 2, xs.shape[0] % 2
+    xh = jnp.abs(xs[half:])
+    x = jnp.broadcast_to(xh[None, :], (ys.shape[0], xh.shape[0]))
+    y = jnp.broadcast_to(ys[:, None], x.shape)
+    sin_phi, c, _, _, cover, g, _ = _geometry(scene, plan, ray_map, x, y)
+    rho = jnp.sqrt(x * x + y * y)
+    safe = rho > 0
+    s = jnp.where(safe, sin_phi / jnp.where(safe, rho, 1.0), 0.0)
+    per_ray = (s, c, cover) if g is None else (s, c, cover, g)
+    # Materialise the half before mirroring: XLA would otherwise fuse the map look-up
+    # into every consumer of the mirrored arrays and repeat it.
+    per_ray = jax.lax.optimization_barrier(per_ray)
+    per_ray = [jnp.concatenate([a[:, odd:][:, ::-1], a], axis=1) for a in per_ray]
+
+    def directions(s, c, ys):
+        return jnp.stack([s * xs[None, :], s * ys[:, None], -c], axis=-1)
+
+    s, c, cover = per_ray[:3]
+    g = per_ray[3] if g is not None else None
+    out = [(directions(s, c, ys), cover, g)]
+    if pair:
+        flip = None if g is None else g[::-1]
+        out.append((directions(s[::-1], c[::-1], -ys[::-1]), cover[::-1], flip))
+    return out
+
+
+def _general(scene, plan, ray_map, row0, rows: int):
+    """Camera-frame directions, coverage, $g$ and static-frame rays of every sample."""
+    cam = scene.camera
+    xs = cam.sample_x()
+    ys = cam.sample_y(row0, rows)
+    x = jnp.broadcast_to(xs[None, :], (ys.shape[0], xs.shape[0]))
+    y = jnp.broadcast_to(ys[:, None], x.shape)
+    sp, cp, cb, sb, cover, g, alpha_s = _geometry(scene, plan, ray_map, x, y)
+    n = jnp.stack([sp * cb, sp * sb, -cp], axis=-1)
+    return n, cover, g, (alpha_s, cb, sb)
+
+
+def directions(scene, plan, ray_map, row0, rows: int):
+    """World sky directions `(rows k, W k, 3)` and shadow coverage `(rows k, W k)` of
+    the block's samples, by the path `shade` takes (for checks and benchmarks)."""
+    if plan.symmetric:
+        n, cover, _ = _symmetric(scene, plan, ray_map, row0, rows, False)[0]
+    else:
+        n, cover, _, _ = _general(scene, plan, ray_map, row0, rows)
+    if not plan.at_origin:
+        n = scene.camera.to_world(n)
+    return n, cover
+
+
+def _radiance(scene, plan, n, g):
+    if not plan.at_origin:
+        n = scene.camera.to_world(n)
+    if plan.redshift is None:
+        return scene.sky(n)
+    with jax.named_scope("jaxlens.redshift"):
+        return _effects.shifted_sky(scene.sky, n, g, plan.redshift)
+
+
+def _average(radiance, rows: int, width: int, k: int):
+    """Mean over each pixel's k x k samples: `(rows k, W k, 3)` -> `(rows, W, 3)`."""
+    if k == 1:
+        return radiance
+    return radiance.reshape(rows, k, width, k, 3).mean(axis=(1, 3))
+
+
+def static_alpha(scene, plan, row0, rows: int):
+    """Static-frame local angle (radians) of every sample of the block, `(rows k, W k)`:
+    what the weak-field bound and the disk's reach are decided on."""
+    cam = scene.camera
+    xs = cam.sample_x()
+    ys = cam.sample_y(row0, rows)
+    x = jnp.broadcast_to(xs[None, :], (ys.shape[0], xs.shape[0]))
+    y = jnp.broadcast_to(ys[:, None], x.shape)
+    alpha, cb, sb = cam._angles(x, y, oriented=not plan.centred)
+    if plan.aberration is not None:
+        alpha = _to_static(scene, alpha, cb, sb)[0]
+    return alpha
+
+
+def reach(scene, plan, row0, rows: int):
+    """Which samples of the block can come within the disk's outer radius (bool,
+    `(rows k, W k)`): the rays the disk stage follows."""
+    alpha = static_alpha(scene, plan, row0, rows)
+    return _disk.can_reach(alpha, scene.camera.distance, scene.disk.r_out)
+
+
+def _apply_disk(scene, plan, rad, rays, g):
+    alpha_s, cb, sb = rays
+    shape = alpha_s.shape
+    flat = rad.reshape(-1, 3)
+    d = scene.camera.distance
+    mask = _disk.can_reach(alpha_s, d, scene.disk.r_out)
+    if plan.disk_rays is None:  # traced values: every ray, masked
+        take = lambda a: jnp.broadcast_to(a, shape).reshape(-1)  # noqa: E731
+    else:  # only the rays that can reach it, gathered into a batch of static size
+        idx = jnp.nonzero(mask.reshape(-1), size=plan.disk_rays, fill_value=mask.size)[0]
+        take = lambda a: jnp.broadcast_to(a, shape).reshape(-1).at[idx].get(mode="clip")  # noqa: E731
+    hits = _disk.trace_disk(take(alpha_s), take(cb), take(sb), d, scene.disk)
+    hit = hits.hit & take(mask)
+    col = _disk.disk_radiance(scene.disk, hits, None if g is None else take(g), plan.redshift)
+    col = col.astype(flat.dtype)
+    if plan.disk_rays is None:
+        return jnp.where(hit[:, None], col, flat).reshape(rad.shape)
+    old = flat.at[idx].get(mode="clip")
+    new = jnp.where(hit[:, None], col, old)
+    return flat.at[idx].set(new, mode="drop").reshape(rad.shape)
+
+
+def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False):
+    """Linear radiance of pixel rows `row0 .. row0+rows` of one camera's image; with
+    `pair` (symmetric plans only) also of their mirror rows `H-row0-rows .. H-row0`.
+
+    **Arguments:** `scene` (one camera), `plan` (a `Plan`: the stages), `ray_map` (the
+    `RayMap` of the camera's distance in the pixel dtype, for the table source; else
+    `None`), `row0` (first pixel row, may be traced), `rows` (static).
+
+    **Returns:** `(rows, W, 3)`, or `(2 rows, W, 3)` with `pair` (the block, then its
+    mirror rows, each top to bottom), in the camera's dtype; captured rays are 0.
+    """
+    scene = checked(scene)
+    cam = scene.camera
+    k, w = cam.supersample, cam.width
+    if plan.symmetric:
+        out = []
+        for n, cover, g in _symmetric(scene, plan, ray_map, row0, rows, pair):
+            rad = _radiance(scene, plan, n, g) * cover[..., None]
+            out.append(_average(rad, rows, w, k))
+        return jnp.concatenate(out, axis=0) if pair else out[0]
+    n, cover, g, rays = _general(scene, plan, ray_map, row0, rows)
+    rad = _radiance(scene, plan, n, g) * cover[..., None]
+    if plan.disk:
+        with jax.named_scope("jaxlens.disk"):
+            rad = _apply_disk(scene, plan, rad, rays, g)
+    return _average(rad, rows, w, k)

@@ -1,0 +1,283 @@
+"""The plan of a scene: which stages and which escape-angle source it compiles, how the
+image is blocked, and why.
+
+`plan(scene)` decides in Python, from the scene's structure and (where they are
+concrete) its values:
+
+- **aberration**: none for a static camera; `"radial"` for a fall along the line to
+  the hole (it only rescales $\\alpha$); `"boost"` for a tangential motion (3-vectors
+  boosted to the static frame). Either way the static ray map stays one-dimensional.
+- **geometry** (the source of $\\Phi$): the alpha table (`RayMap`, built once per
+  distance); the weak-field series where every ray in view has its periapsis far out
+  and the series' rigorous truncation bound is below the accuracy (and the view is
+  small enough that the table's build is not amortised); or `"trace"`, the exact
+  closed form per ray, when the scene forces it.
+- **redshift**, **disk**: present when the scene names them; the disk stage follows
+  only the rays that can reach the disk, gathered into a batch whose size is the
+  largest count over the blocks (rounded up to one of 16 steps).
+- **blocking**: frames and pixel rows a compiled block holds (at most `chunk_samples`
+  area samples), and whether mirrored row pairs are used.
+
+Under `jit`/`grad` of the scene the values are unknown and the plan stays on the safe
+side: the table, every ray masked for the disk.
+"""
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _kernel
+from ._util import is_concrete
+from ._weak import WEAK_MAX_SAMPLES, weak_field_escape_angle
+
+CHUNK_SAMPLES = 1 << 21  # default area samples a compiled block holds
+_BUCKETS = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What the renderer compiles for a scene (hashable: it keys the compiled program).
+
+    **Fields:**
+    - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$).
+    - `aberration`: `None`, `"radial"` or `"boost"`; `redshift`: `None`,
+      `"bolometric"` or `"spectral"`; `disk`: whether disk rays are traced.
+    - `disk_rays`: rays a block follows through the disk plane (`None`: all, masked).
+    - `centred`, `at_origin`: the camera's view is unrotated / its frame is the sky's.
+    - `symmetric`: the mirror-symmetric path (centred, no tangential motion, no disk).
+    - `frames`, `rows`, `pair`: frames and pixel rows a block holds (a mirrored pair
+      of row blocks counting once), whether mirrored row pairs are used.
+    - `blocks`: compiled calls for the whole batch; `samples`: area samples a block.
+    - `weak_bound`: largest truncation bound of the weak-field series over the view
+      (radians), where computed.
+    - `reasons`: one line per decision.
+    """
+
+    geometry: str
+    aberration: str | None
+    redshift: str | None
+    disk: bool
+    disk_rays: int | None
+    centred: bool
+    at_origin: bool
+    symmetric: bool
+    frames: int
+    rows: int
+    pair: bool
+    blocks: int
+    samples: int
+    weak_bound: float | None
+    reasons: tuple[str, ...]
+
+    @property
+    def stages(self) -> tuple[str, ...]:
+        """The stages in the compiled program, in order."""
+        out = ["samples"]
+        if self.aberration is not None:
+            out.append("aberration")
+        if self.redshift is not None:
+            out.append("redshift")
+        out += [self.geometry, "sky"]
+        if self.disk:
+            out.append("disk")
+        return tuple(out)
+
+    def kernel_key(self) -> "Plan":
+        """The plan with what does not change the compiled kernel blanked."""
+        return dataclasses.replace(self, blocks=0, samples=0, weak_bound=None, reasons=())
+
+    def __str__(self):
+        head = (
+            f"geometry={self.geometry}, aberration={self.aberration}, redshift="
+            f"{self.redshift}, disk={'traced' if self.disk else 'none'}; {self.blocks} "
+            f"block(s) of {self.frames} frame(s) x {self.rows} row(s)"
+            + (" (mirrored pairs)" if self.pair else "")
+        )
+        return "\n".join([head] + [f"  - {r}" for r in self.reasons])
+
+
+def blocking(camera, chunk_samples: int = CHUNK_SAMPLES, *, symmetric: bool = True) -> dict:
+    """How an image (or a batch of frames) is split into compiled blocks.
+
+    **Returns:** a dict with `frames` (frames a block), `rows` (pixel rows a block; a
+    pair of mirrored row blocks counts once), `pair` (whether mirrored row pairs are
+    used), `samples` (area samples a block holds), `blocks` (blocks in all).
+    """
+    if not (isinstance(chunk_samples, int) and chunk_samples >= 1):
+        raise ValueError(f"chunk_samples={chunk_samples!r} must be a whole number >= 1")
+    n = camera.batch_shape[0] if camera.batch_shape else 1
+    k = camera.supersample
+    pair = symmetric and camera.height % 2 == 0
+    per_row = camera.width * k * k * (2 if pair else 1)
+    total_rows = camera.height // 2 if pair else camera.height
+    if total_rows * per_row <= chunk_samples:
+        rows = total_rows
+        frames = int(min(n, max(1, chunk_samples // (total_rows * per_row))))
+    else:
+        rows = int(max(1, chunk_samples // per_row))
+        frames = 1
+    blocks = -(-n // frames) * -(-total_rows // rows)
+    return {
+        "frames": frames,
+        "rows": rows,
+        "pair": pair,
+        "samples": frames * rows * per_row,
+        "blocks": blocks,
+    }
+
+
+def starts(total: int, step: int) -> list[tuple[int, int]]:
+    """Block starts covering `range(total)` with blocks of `step`: pairs (first new
+    index, start of the block); the last block overlaps the previous one instead of
+    running past the end."""
+    return [(s, min(s, total - step)) for s in range(0, total, step)]
+
+
+def _bucket(count: int, total: int) -> int:
+    """Padded size of a gathered batch: the next of 16 steps of `total` (so the disk
+    batch takes at most 16 sizes)."""
+    step = max(1, -(-total // _BUCKETS))
+    return int(min(total, max(step, -(-count // step) * step)))
+
+
+@eqx.filter_jit
+def _static_alpha(scene, plan, row0, rows):
+    return _kernel.static_alpha(scene, plan, row0, rows)
+
+
+@eqx.filter_jit
+def _reach_count(scene, plan, row0, rows):
+    return jnp.sum(_kernel.reach(scene, plan, row0, rows))
+
+
+def frame(scene, index):
+    """The scene with only frame(s) `index` (an int or a slice) of its camera batch."""
+    return eqx.tree_at(lambda s: s.camera, scene, jax.tree.map(lambda a: a[index], scene.camera))
+
+
+def _frames(scene):
+    cam = scene.camera
+    n = cam.batch_shape[0] if cam.batch_shape else 1
+    for i in range(n):
+        yield i, (scene if not cam.batch_shape else frame(scene, i))
+
+
+def plan(scene, *, chunk_samples: int = CHUNK_SAMPLES) -> Plan:
+    """Decide how a scene is rendered (see the module docstring).
+
+    **Arguments:** `scene` (a `Scene`; its camera may hold a batch of frames);
+    `chunk_samples`: area samples a compiled block may hold.
+
+    **Returns:** a `Plan`; `str(plan)` lists each decision and its reason.
+    """
+    with jax.ensure_compile_time_eval():  # host decisions, even inside a trace
+        return _plan(scene, chunk_samples)
+
+
+def _plan(scene, chunk_samples):
+    cam = scene.camera
+    reasons = []
+    concrete = is_concrete((cam, scene.motion)) and (
+        scene.disk is None or is_concrete(scene.disk.r_out)
+    )
+    if scene.motion is None:
+        aberration = None
+        reasons.append("static camera: no aberration, the pixel angles are the static ones")
+    elif scene.motion.radial:
+        aberration = "radial"
+        reasons.append(
+            f"{type(scene.motion).__name__}: motion along the line to the hole, so the "
+            "aberration only rescales alpha (the map stays 1-D)"
+        )
+    else:
+        aberration = "boost"
+        reasons.append(
+            f"{type(scene.motion).__name__}: tangential motion, pixel directions are "
+            "boosted to the static frame as 3-vectors; the static map stays 1-D"
+        )
+    redshift = None if scene.redshift is None else scene.redshift.mode
+    if redshift is None:
+        reasons.append("no Redshift: colours as emitted, no frequency shift computed")
+    else:
+        reasons.append(
+            f"Redshift({redshift!r}): g = 1/sqrt(1 - 1/D)"
+            + (" x Doppler factor" if scene.motion is not None else "")
+        )
+    centred, at_origin = cam.is_centred(), cam.at_origin()
+    has_disk = scene.disk is not None
+    symmetric = centred and aberration != "boost" and not has_disk
+    if symmetric:
+        reasons.append("centred view, rays depend on |x| and |y|: a quarter of the samples "
+                       "go through the escape angle, mirrored")  # fmt: skip
+    b = blocking(cam, chunk_samples, symmetric=symmetric)
+    samples_view = cam.width * cam.height * cam.supersample**2
+    base = Plan("table", aberration, redshift, has_disk, None, centred, at_origin, symmetric,
+                b["frames"], b["rows"], b["pair"], b["blocks"], b["samples"], None, ())  # fmt: skip
+
+    weak_bound = None
+    if scene.method != "auto":
+        geometry = scene.method
+        reasons.append(f"method={scene.method!r} forced by the scene")
+    elif not concrete:
+        geometry = "table"
+        reasons.append("camera values are traced: the view cannot be bounded, use the table")
+    elif samples_view > WEAK_MAX_SAMPLES:
+        geometry = "table"
+        reasons.append(
+            f"{samples_view} rays a view > {WEAK_MAX_SAMPLES}: the table's build is amortised "
+            "and its look-up is cheaper than the weak-field series"
+        )
+    else:
+        bounds = []
+        for _, one in _frames(scene):
+            alpha = _static_alpha(one, base.kernel_key(), 0, cam.height)
+            _, bound = weak_field_escape_angle(alpha, one.camera.distance)
+            bounds.append(float(jnp.max(bound)))
+        weak_bound = max(bounds)
+        if weak_bound < scene.accuracy:
+            geometry = "weak_field"
+            reasons.append(
+                f"every ray in view has a far periapsis: weak-field series bound "
+                f"{weak_bound:.2e} rad < accuracy {scene.accuracy:.1e}, no table needed"
+            )
+        else:
+            geometry = "table"
+            what = "inf (rays near the hole)" if not math.isfinite(weak_bound) else (
+                f"{weak_bound:.2e} rad")  # fmt: skip
+            reasons.append(
+                f"weak-field bound {what} >= accuracy {scene.accuracy:.1e}: alpha table "
+                "(RayMap) built once per distance, interpolated per ray"
+            )
+    disk_rays = None
+    if has_disk:
+        if concrete:
+            total_rows = cam.height
+            counts = [
+                int(_reach_count(one, base.kernel_key(), r0, b["rows"]))
+                for _, one in _frames(scene)
+                for _, r0 in starts(total_rows, b["rows"])
+            ]
+            per_block = b["rows"] * cam.width * cam.supersample**2
+            disk_rays = _bucket(max(counts), per_block)
+            reasons.append(
+                f"Disk: at most {max(counts)} of a block's {per_block} rays can come within "
+                f"r_out = {float(np.max(scene.disk.r_out)):g}; only they are traced through "
+                f"the disk plane ({scene.disk.crossings} crossings x {scene.disk.steps} RK4 "
+                f"steps), in batches of {disk_rays}"
+            )
+        else:
+            reasons.append("Disk: traced values, all rays traced through the plane (masked)")
+    else:
+        reasons.append("no Disk: no per-ray tracing")
+    reasons.append(
+        f"{b['blocks']} compiled block(s) of at most {b['samples']} area samples "
+        f"(chunk_samples = {chunk_samples})"
+    )
+    return dataclasses.replace(
+        base, geometry=geometry, disk_rays=disk_rays, weak_bound=weak_bound,
+        reasons=tuple(reasons),
+    )  # fmt: skip
