@@ -47,7 +47,6 @@ from ._camera import (
 )
 from ._disk import Disk as Disk, trace_disk as trace_disk
 from ._effects import (
-    BlackbodyStars as BlackbodyStars,
     CircularOrbit as CircularOrbit,
     RadialInfall as RadialInfall,
     Redshift as Redshift,
@@ -97,7 +96,9 @@ from ._shard import (
     trace_sharded as trace_sharded,
 )
 from ._sky import (
+    AbstractRGBSky as AbstractRGBSky,
     AbstractSky as AbstractSky,
+    BlackbodyStars as BlackbodyStars,
     Checker as Checker,
     DefaultSky as DefaultSky,
     GaussianStar as GaussianStar,
@@ -111,6 +112,8 @@ from ._sky import (
     angular_distance as angular_distance,
     direction_from_angles as direction_from_angles,
     equirectangular as equirectangular,
+    sky_from_table as sky_from_table,
+    to_rgb as to_rgb,
 )
 
 

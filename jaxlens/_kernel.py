@@ -210,7 +210,7 @@ def _radiance(scene, plan, n, g):
     if plan.redshift is None:
         return scene.sky(n)
     with jax.named_scope("jaxlens.redshift"):
-        return _effects.shifted_sky(scene.sky, n, g, plan.redshift)
+        return scene.sky.shifted(n, g, plan.redshift)
 
 
 def _average(radiance, rows: int, width: int, k: int):

@@ -7,17 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxlens._camera import (
-    Camera,
-    approach,
-    orbit,
-    pan,
-    rotation_matrix,
-    sky_direction,
-    stack_cameras,
-    zoom,
-)
-from jaxlens._sky import direction_from_angles
+import jaxlens as jl
 
 # Pixel positions are sums of a few exactly representable numbers: compare to 1e-12.
 # Angles from them go through atan2/hypot: float64 round-off, 1e-12 rad.
@@ -42,7 +32,7 @@ def reference_samples(w, h, k, fov):
 @pytest.mark.parametrize("w,h,k", [(6, 4, 1), (5, 3, 1), (4, 3, 2), (3, 5, 3)])
 def test_sample_positions_and_angles_follow_physics_md(w, h, k):
     fov = math.radians(70.0)
-    cam = Camera(10.0, fov, w, h, supersample=k)
+    cam = jl.Camera(10.0, fov, w, h, supersample=k)
     x, y = cam.sample_xy()
     xr, yr, f = reference_samples(w, h, k, fov)
     np.testing.assert_allclose(x, xr, atol=EXACT, rtol=0)
@@ -60,7 +50,7 @@ def test_sample_positions_and_angles_follow_physics_md(w, h, k):
 
 def test_pixel_centres_one_sample():
     # Pixel (0, 0) of a 4 x 2 image: centre x = 0.5 - 2 = -1.5, y = 1 - 0.5 = 0.5.
-    cam = Camera(10.0, math.radians(90.0), 4, 2)
+    cam = jl.Camera(10.0, math.radians(90.0), 4, 2)
     x, y = cam.sample_xy()
     assert (float(x[0, 0, 0]), float(y[0, 0, 0])) == (-1.5, 0.5)
     assert (float(x[1, 3, 0]), float(y[1, 3, 0])) == (1.5, -0.5)
@@ -70,7 +60,7 @@ def test_pixel_centres_one_sample():
 
 def test_supersample_positions():
     # k = 3: sub-sample centres at 1/6, 1/2, 5/6 of a pixel.
-    cam = Camera(10.0, 1.0, 1, 1, supersample=3)
+    cam = jl.Camera(10.0, 1.0, 1, 1, supersample=3)
     x, y = cam.sample_xy()
     np.testing.assert_allclose(np.unique(np.asarray(x)), np.array([1, 3, 5]) / 6 - 0.5,
                                atol=EXACT)  # fmt: skip
@@ -83,13 +73,13 @@ def test_yaw_moves_the_hole_left_and_pitch_down():
     f = 50.0
     fov = 2 * math.atan(50 / f)  # W = 100
     yaw = math.radians(10.0)
-    cam = Camera(10.0, fov, 100, 60, yaw=yaw)
+    cam = jl.Camera(10.0, fov, 100, 60, yaw=yaw)
     # Turning the view right by yaw puts the hole (alpha = 0) at x = -f tan(yaw).
     x = jnp.asarray([[-f * math.tan(yaw)]])
     alpha, _, _ = cam._angles(x, jnp.zeros_like(x), oriented=True)
     assert float(alpha[0, 0]) == pytest.approx(0.0, abs=1e-7)
     pitch = math.radians(5.0)
-    cam = Camera(10.0, fov, 100, 60, pitch=pitch)
+    cam = jl.Camera(10.0, fov, 100, 60, pitch=pitch)
     y = jnp.asarray([[-f * math.tan(pitch)]])
     alpha, _, _ = cam._angles(jnp.zeros_like(y), y, oriented=True)
     assert float(alpha[0, 0]) == pytest.approx(0.0, abs=1e-7)
@@ -97,8 +87,8 @@ def test_yaw_moves_the_hole_left_and_pitch_down():
 
 def test_roll_turns_beta():
     roll = 0.3
-    a = Camera(10.0, 1.0, 8, 6)
-    b = Camera(10.0, 1.0, 8, 6, roll=roll)
+    a = jl.Camera(10.0, 1.0, 8, 6)
+    b = jl.Camera(10.0, 1.0, 8, 6, roll=roll)
     alpha_a, cb_a, sb_a = a.rays()
     alpha_b, cb_b, sb_b = b.rays()
     np.testing.assert_allclose(alpha_b, alpha_a, atol=EXACT)
@@ -110,39 +100,39 @@ def test_roll_turns_beta():
 def test_rotation_matrix_convention():
     # R maps +z to the direction at (lon = yaw, lat = pitch) and is orthonormal.
     for yaw, pitch, roll in [(0.3, 0.2, 0.1), (-2.0, -1.0, 3.0)]:
-        r = np.asarray(rotation_matrix(yaw, pitch, roll))
+        r = np.asarray(jl.rotation_matrix(yaw, pitch, roll))
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-14)
-        np.testing.assert_allclose(r[:, 2], direction_from_angles(yaw, pitch), atol=1e-14)
+        np.testing.assert_allclose(r[:, 2], jl.direction_from_angles(yaw, pitch), atol=1e-14)
 
 
 def test_position_rotation_puts_the_hole_in_front_of_the_sky_point():
-    cam = Camera(10.0, 1.0, 4, 4, azimuth=0.7, elevation=-0.4)
+    cam = jl.Camera(10.0, 1.0, 4, 4, azimuth=0.7, elevation=-0.4)
     behind = cam.to_world(jnp.asarray([0.0, 0.0, 1.0]))
-    np.testing.assert_allclose(behind, direction_from_angles(0.7, -0.4), atol=1e-14)
+    np.testing.assert_allclose(behind, jl.direction_from_angles(0.7, -0.4), atol=1e-14)
 
 
 def test_sky_direction_flat_space():
     # Flat space: Phi = pi - alpha gives back the ray's own direction.
     alpha, beta = 0.4, 1.1
-    n = sky_direction(math.pi - alpha, math.cos(beta), math.sin(beta))
+    n = jl.sky_direction(math.pi - alpha, math.cos(beta), math.sin(beta))
     expect = [math.sin(alpha) * math.cos(beta), math.sin(alpha) * math.sin(beta), math.cos(alpha)]
     np.testing.assert_allclose(n, expect, atol=1e-15)
 
 
 def test_batches_of_cameras():
-    cam = Camera(20.0, 1.0, 8, 6, supersample=2)
+    cam = jl.Camera(20.0, 1.0, 8, 6, supersample=2)
     d = np.geomspace(1e5, 3.0, 5)
-    a = approach(cam, d)
+    a = jl.approach(cam, d)
     assert a.batch_shape == (5,)
     np.testing.assert_array_equal(a.distance, d)
     np.testing.assert_array_equal(a.fov, np.ones(5))
-    o = orbit(cam, np.linspace(0, 2 * np.pi, 4, endpoint=False))
+    o = jl.orbit(cam, np.linspace(0, 2 * np.pi, 4, endpoint=False))
     assert o.azimuth.shape == (4,) and (o.width, o.height, o.supersample) == (8, 6, 2)
-    z = zoom(cam, [1.0, 0.5])
+    z = jl.zoom(cam, [1.0, 0.5])
     np.testing.assert_array_equal(z.fov, [1.0, 0.5])
-    p = pan(cam, [0.0, 0.1, 0.2])
+    p = jl.pan(cam, [0.0, 0.1, 0.2])
     np.testing.assert_array_equal(p.yaw, [0.0, 0.1, 0.2])
-    s = stack_cameras([cam, Camera(30.0, 0.5, 8, 6, supersample=2)])
+    s = jl.stack_cameras([cam, jl.Camera(30.0, 0.5, 8, 6, supersample=2)])
     np.testing.assert_array_equal(s.distance, [20.0, 30.0])
     # A batch is a pytree: vmap sees one camera at a time.
     focal = jax.vmap(lambda c: c.focal)(s)
@@ -172,18 +162,18 @@ def test_bad_camera_raises_naming_the_argument(kwargs, match):
     args.update(kwargs)
     d, f, w, h = (args.pop(k) for k in ("distance", "fov", "width", "height"))
     with pytest.raises(ValueError, match=match):
-        Camera(d, f, w, h, **args)
+        jl.Camera(d, f, w, h, **args)
 
 
 def test_distance_too_close_for_the_dtype():
     with pytest.raises(ValueError, match="distance=1.000000001 rounds to 1 .* float32"):
-        Camera(1 + 1e-9, 1.0, 4, 4, dtype=np.float32)
-    assert float(Camera(1 + 1e-9, 1.0, 4, 4).distance) == 1 + 1e-9  # float64 holds it
+        jl.Camera(1 + 1e-9, 1.0, 4, 4, dtype=np.float32)
+    assert float(jl.Camera(1 + 1e-9, 1.0, 4, 4).distance) == 1 + 1e-9  # float64 holds it
 
 
 def test_bad_batch_raises():
-    cam = Camera(20.0, 1.0, 8, 6)
+    cam = jl.Camera(20.0, 1.0, 8, 6)
     with pytest.raises(ValueError, match="distance=0.5"):
-        approach(cam, [10.0, 0.5])
+        jl.approach(cam, [10.0, 0.5])
     with pytest.raises(ValueError, match="share width"):
-        stack_cameras([cam, Camera(20.0, 1.0, 8, 7)])
+        jl.stack_cameras([cam, jl.Camera(20.0, 1.0, 8, 7)])

@@ -1,0 +1,88 @@
+"""One star of Gaussian profile."""
+
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .. import _schema
+from .._schema import Key, anything
+from .._util import as_float as _farray, concrete as _concrete
+from ._base import AbstractRGBSky, angular_distance, direction_from_angles, finite, positive
+from ._table import SIGMA
+
+
+class GaussianStar(AbstractRGBSky):
+    """A star of Gaussian profile in angular distance $d$: $I = A e^{-d^2 / 2\\sigma^2}$.
+
+    **Fields:** `sigma` (radians, standard deviation in great-circle angle),
+    `brightness` $A$ (peak radiance), `direction` (3-vector, need not be unit
+    length; default $+z$, exactly behind the hole), `color` (RGB weights).
+
+    Give the position either as `direction` or as `lon`, `lat` (radians; see
+    `direction_from_angles`).
+    """
+
+    sigma: Float[Array, ""]
+    brightness: Float[Array, ""]
+    direction: Float[Array, "3"]
+    color: Float[Array, "3"]
+
+    def __init__(
+        self,
+        sigma: ArrayLike,
+        brightness: ArrayLike = 1.0,
+        direction: ArrayLike | None = None,
+        color: ArrayLike = (1.0, 1.0, 1.0),
+        *,
+        lon: ArrayLike | None = None,
+        lat: ArrayLike | None = None,
+    ):
+        positive("sigma", sigma, "radians")
+        self.sigma = _farray(sigma)
+        self.brightness = _farray(brightness)
+        if lon is not None or lat is not None:
+            if direction is not None:
+                raise ValueError("give the star position as direction or as lon/lat, not both")
+            d = direction_from_angles(0.0 if lon is None else lon, 0.0 if lat is None else lat)
+        else:
+            d = _farray((0.0, 0.0, 1.0) if direction is None else direction)
+            c = _concrete(d)
+            if c is not None and (c.shape != (3,) or not np.all(np.isfinite(c)) or not c.any()):
+                raise ValueError(f"direction={c.tolist()!r} must be a finite non-zero 3-vector")
+            d = d / jnp.linalg.norm(d)
+        self.direction = d
+        self.color = _farray(color)
+
+    def __check_init__(self):
+        finite("brightness", self.brightness, "linear radiance")
+
+    def __call__(self, n):
+        dt = n.dtype
+        d = angular_distance(n, self.direction.astype(dt))
+        i = self.brightness.astype(dt) * jnp.exp(-0.5 * (d / self.sigma.astype(dt)) ** 2)
+        return i[..., None] * self.color.astype(dt)
+
+
+@_schema.register(
+    "sky",
+    "star",
+    {
+        **SIGMA,
+        "brightness": Key("float", 1.0, anything, "a finite number (peak radiance)"),
+        "lon_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
+        "lat_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
+        "color": Key("color", [1.0, 1.0, 1.0], anything, "a number or a list of 3 numbers (RGB)"),
+    },
+)
+def _star(fields: dict, base: Path) -> GaussianStar:
+    rad = math.radians
+    return GaussianStar(
+        rad(fields["sigma_deg"]),
+        fields["brightness"],
+        color=np.broadcast_to(np.asarray(fields["color"], float), (3,)),
+        lon=rad(fields["lon_deg"]),
+        lat=rad(fields["lat_deg"]),
+    )

@@ -1,0 +1,139 @@
+"""Many Gaussian stars, summed."""
+
+import math
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .. import _schema
+from .._fastmath import arctan2
+from .._schema import Key, anything, in_range
+from .._util import as_float as _farray
+from ._base import AbstractRGBSky, direction_from_angles, positive
+from ._table import check_star_lists, star_directions, value_range
+
+
+class StarField(AbstractRGBSky):
+    """Many Gaussian stars, summed; vectorised over stars and directions.
+
+    Each direction is compared with every star (blocks of `block` stars at a time,
+    through `lax.scan`, so memory is `block` x the number of directions): use it for
+    up to a few hundred stars. The procedural `DefaultSky` holds millions.
+
+    **Fields:** `directions (N, 3)` (unit vectors), `sigma (N,)` (radians),
+    `brightness (N,)` (peak radiance), `color (N, 3)`; `block` (static).
+    """
+
+    directions: Float[Array, "N 3"]
+    sigma: Float[Array, " N"]
+    brightness: Float[Array, " N"]
+    color: Float[Array, "N 3"]
+    block: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        directions: ArrayLike,
+        sigma: ArrayLike,
+        brightness: ArrayLike = 1.0,
+        color: ArrayLike = (1.0, 1.0, 1.0),
+        *,
+        block: int = 16,
+    ):
+        d = _farray(directions)
+        if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
+            raise ValueError(f"directions has shape {d.shape}; expected (N, 3) with N >= 1")
+        n = d.shape[0]
+        positive("sigma", sigma, "radians")
+        self.directions = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        self.sigma = jnp.broadcast_to(_farray(sigma), (n,))
+        self.brightness = jnp.broadcast_to(_farray(brightness), (n,))
+        self.color = jnp.broadcast_to(_farray(color), (n, 3))
+        self.block = int(block)
+
+    @classmethod
+    def from_angles(cls, lon, lat, sigma, brightness=1.0, color=(1.0, 1.0, 1.0)) -> "StarField":
+        """Stars at longitudes `lon`, latitudes `lat` (radians, 1-D arrays)."""
+        d = direction_from_angles(jnp.atleast_1d(lon), jnp.atleast_1d(lat))
+        return cls(d, sigma, brightness, color)
+
+    @classmethod
+    def random(cls, count: int, *, seed: int = 0, sigma=0.003, brightness=(0.05, 2.0)):
+        """`count` stars uniform on the sphere, brightness log-uniform in the range
+        `brightness`, colours from blue-white to orange; `sigma` in radians."""
+        rng = np.random.default_rng(seed)
+        d = rng.normal(size=(count, 3))
+        lo, hi = brightness
+        b = np.exp(rng.uniform(np.log(lo), np.log(hi), count))
+        t = rng.uniform(0, 1, count)[:, None]
+        color = np.concatenate([0.8 + 0.4 * t, 0.9 + 0.1 * t, 1.2 - 0.5 * t], axis=1)
+        return cls(d, sigma, b, color)
+
+    def __call__(self, n):
+        dt = n.dtype
+        shape = n.shape[:-1]
+        flat = n.reshape(-1, 3)
+        k = self.directions.shape[0]
+        nb = -(-k // self.block)
+        pad = nb * self.block - k
+
+        def padded(a, value):
+            return jnp.concatenate([a.astype(dt), jnp.full((pad,) + a.shape[1:], value, dt)])
+
+        s = padded(self.directions, 0.0)
+        s = s.at[k:, 2].set(1.0)
+        # Tangent basis (e1, e2, s) of each star: d = atan2(|(n.e1, n.e2)|, n.s) exactly.
+        helper = jnp.where(
+            jnp.abs(s[:, :1]) < 0.9, jnp.array([1.0, 0, 0], dt), jnp.array([0, 1.0, 0], dt)
+        )
+        e1 = jnp.cross(s, helper)
+        e1 = e1 / jnp.linalg.norm(e1, axis=-1, keepdims=True)
+        e2 = jnp.cross(s, e1)
+        basis = jnp.stack([e1, e2, s], axis=1).reshape(nb, self.block * 3, 3)
+        inv2s2 = (0.5 / padded(self.sigma, 1.0) ** 2).reshape(nb, self.block)
+        amp = padded(self.brightness, 0.0).reshape(nb, self.block)
+        col = padded(self.color, 0.0).reshape(nb, self.block, 3)
+
+        def step(acc, blk):
+            b, w, a, c = blk
+            p = (flat @ b.T).reshape(-1, self.block, 3)
+            d = arctan2(jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2), p[..., 2])
+            i = a * jnp.exp(-(d * d) * w)
+            return acc + i @ c, None
+
+        acc, _ = jax.lax.scan(step, jnp.zeros((flat.shape[0], 3), dt), (basis, inv2s2, amp, col))
+        return acc.reshape(shape + (3,))
+
+
+def _check(where: str, fields: dict) -> None:
+    check_star_lists(where, fields, ("brightness",))
+
+
+@_schema.register(
+    "sky",
+    "stars",
+    {
+        "sigma_deg": Key("float", 0.15, in_range(0.0, 180.0), "a number in (0, 180) (degrees)"),
+        "count": Key("int", 200, in_range(0, 100001), "a whole number from 1 to 100000"),
+        "seed": Key("int", 0, anything, "a whole number"),
+        "lon_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
+        "lat_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
+        "brightness": Key(
+            "floats", None, anything, "a number or a list of numbers (peak radiance)"
+        ),
+    },
+    check=_check,
+)
+def _stars(fields: dict, base: Path) -> StarField:
+    """Stars at `lon_deg`, `lat_deg` (brightness a number or one a star, default 1), or
+    `count` random ones (brightness log-uniform between the least and the largest
+    value given, default 0.05 to 2)."""
+    sigma = math.radians(fields["sigma_deg"])
+    if "lon_deg" in fields:
+        b = np.asarray(fields.get("brightness", 1.0), float)
+        return StarField(star_directions(fields), sigma, b)
+    rng = value_range(fields.get("brightness"), (0.05, 2.0))
+    return StarField.random(fields["count"], seed=fields["seed"], sigma=sigma, brightness=rng)
