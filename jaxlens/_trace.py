@@ -87,7 +87,17 @@ class Exact(AbstractMethod):
 
 class AbstractIntegrator(AbstractMethod):
     """Integrate the orbit equation $u'' = 1.5 u^2 - u$ in azimuth with a Runge-Kutta
-    `tableau`; a subclass names its tableau and its settings."""
+    tableau. A subclass only names its tableau and its settings.
+
+    **Fields:**
+
+    - `tableau` (class variable): the `ButcherTableau`; adaptive stepping if it has
+      an error estimate (`b_error`).
+    - `dphi`: the step (fixed tableau) or the first trial step (adaptive), radians.
+    - `tol`: per-step tolerance on the error relative to $|u| + |u'|$ (adaptive), or
+      `None` (fixed step).
+    - `max_steps`: step budget a ray; rays beyond it are `UNRESOLVED`.
+    """
 
     tableau: eqx.AbstractClassVar[ButcherTableau]
     dphi: eqx.AbstractVar[float]
@@ -95,7 +105,7 @@ class AbstractIntegrator(AbstractMethod):
     max_steps: eqx.AbstractVar[int]
 
     def step(self, u: ArrayLike, v: ArrayLike) -> tuple[Array, Array]:
-        """One step of size `dphi` (radians) along an orbit.
+        """One step of size `dphi` (radians) along an orbit, without step-size control.
 
         **Arguments:**
         - `u, v`: $u = 1/r$ (units of $1/R_S$) and $du/d\\phi$, arrays of one shape.
