@@ -90,7 +90,6 @@ class AbstractIntegrator(AbstractMethod):
     tableau. A subclass only names its tableau and its settings.
 
     **Fields:**
-
     - `tableau` (class variable): the `ButcherTableau`; adaptive stepping if it has
       an error estimate (`b_error`).
     - `dphi`: the step (fixed tableau) or the first trial step (adaptive), radians.
