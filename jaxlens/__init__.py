@@ -21,10 +21,13 @@ from ._exact import (
 )
 from ._trace import (
     RK4 as RK4,
+    AbstractIntegrator as AbstractIntegrator,
     AbstractMethod as AbstractMethod,
+    ButcherTableau as ButcherTableau,
     DormandPrince as DormandPrince,
     Euler as Euler,
     Exact as Exact,
+    RayStatus as RayStatus,
     Table as Table,
     TraceResult as TraceResult,
     trace as trace,

@@ -12,7 +12,7 @@ $r(\\phi)\\,(\\cos\\phi\\,\\hat e_0 + \\sin\\phi\\,\\hat e_\\perp)$, $\\hat e_0 
 $\\hat e_\\perp = (\\cos\\beta, \\sin\\beta, 0)$. It crosses the disk plane where
 $A\\cos\\phi + B\\sin\\phi = 0$ ($A = \\hat e_0\\cdot\\hat n$, $B = \\hat e_\\perp\\cdot\\hat n$):
 at $\\phi_k = \\phi_0 + k\\pi$, $k = 0, 1, \\dots$ (the crossing number). $u = 1/r$ at
-those azimuths comes from RK4 steps of $u'' = 1.5u^2 - u$ (`_orbit.rk4_step`) that
+those azimuths comes from RK4 steps of $u'' = 1.5u^2 - u$ (`_integrators.rk4_step`) that
 land exactly on each $\\phi_k$, all rays in lock-step (a `lax.scan`, vmapped by
 construction, reverse-differentiable). The first crossing inside
 $r_{in} \\le r \\le r_{out}$ before the ray escapes or falls in is the one seen:
@@ -39,7 +39,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from . import _effects
-from ._orbit import rk4_step
+from ._integrators import rk4_step
 from ._schema import Key, anything, greater, in_range, register
 from ._util import as_float as _farray
 

@@ -11,14 +11,11 @@ import math
 
 import jax.numpy as jnp
 
+from ._status import CAPTURED, ESCAPED, UNRESOLVED
+
 B_CRIT = 1.5 * math.sqrt(3.0)  # critical impact parameter 3 sqrt(3) / 2, units of R_S
 R_PHOTON = 1.5  # photon-sphere radius, units of R_S
 _SQRT3 = math.sqrt(3.0)
-
-# Status codes of a ray (see TraceResult).
-ESCAPED = 0
-CAPTURED = 1
-UNRESOLVED = 2
 
 
 def _rf_series(a, e2, e3):

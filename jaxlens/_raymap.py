@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
-from ._exact import CAPTURED, ESCAPED, UNRESOLVED
+from ._status import CAPTURED, ESCAPED, UNRESOLVED
 from ._util import fusion_barrier
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and

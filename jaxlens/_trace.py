@@ -1,6 +1,8 @@
 """`trace`: camera rays -> escape angle and capture, the single source of truth for Phi."""
 
+import abc
 import math
+from typing import ClassVar, final
 
 import equinox as eqx
 import jax
@@ -8,8 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from . import _exact, _orbit
-from ._exact import CAPTURED, ESCAPED, UNRESOLVED
+from . import _exact, _integrators
+from ._integrators import ButcherTableau, integrate, rk_step
+from ._orbit import acceleration
+from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
 
 
 class TraceResult(eqx.Module):
@@ -19,8 +23,11 @@ class TraceResult(eqx.Module):
     - `phi`: escape angle, the azimuth swept in the orbital plane from the camera
       to the escaping asymptote (radians; $\\pi - \\alpha$ in flat space). For a
       captured ray, the azimuth at which it crosses the horizon.
-    - `status`: `ESCAPED` (0), `CAPTURED` (1) or `UNRESOLVED` (2: beyond the
-      winding budget or the step budget; never painted as captured).
+    - `status`: per ray, an int8 code: `ESCAPED` (0), `CAPTURED` (1) or
+      `UNRESOLVED` (2: beyond the winding budget or the step budget; never painted
+      as captured), the positions of the items of `RayStatus`, which holds the
+      message of each. An array, not an `eqx.Enumeration` item, so that it indexes,
+      shards and compares like the other fields.
     - `r_min`: smallest radius reached (units of R_S; 1 for captured rays).
     """
 
@@ -56,10 +63,16 @@ class TraceResult(eqx.Module):
 class AbstractMethod(eqx.Module):
     """A way to compute the escape angle of rays from a static camera."""
 
-    def __call__(self, alpha, distance, max_windings):
-        raise NotImplementedError
+    @abc.abstractmethod
+    def __call__(self, alpha, distance, max_windings) -> TraceResult:
+        """Trace rays at local angles `alpha` (radians) from a camera at `distance`
+        (units of R_S, broadcast with `alpha`), with a budget of `max_windings` turns.
+
+        **Returns:** a `TraceResult` of the broadcast shape.
+        """
 
 
+@final
 class Exact(AbstractMethod):
     """Closed form through Carlson's $R_F$; `iterations` duplication steps."""
 
@@ -72,8 +85,36 @@ class Exact(AbstractMethod):
         return TraceResult(phi, status, r_min)
 
 
-class _Integrator(AbstractMethod):
-    def _run(self, alpha, distance, max_windings, scheme, dphi, tol, max_steps):
+class AbstractIntegrator(AbstractMethod):
+    """Integrate the orbit equation $u'' = 1.5 u^2 - u$ in azimuth with a Runge-Kutta
+    tableau. A subclass only names its tableau and its settings.
+
+    **Fields:**
+    - `tableau` (class variable): the `ButcherTableau`; adaptive stepping if it has
+      an error estimate (`b_error`).
+    - `dphi`: the step (fixed tableau) or the first trial step (adaptive), radians.
+    - `tol`: per-step tolerance on the error relative to $|u| + |u'|$ (adaptive), or
+      `None` (fixed step).
+    - `max_steps`: step budget a ray; rays beyond it are `UNRESOLVED`.
+    """
+
+    tableau: eqx.AbstractClassVar[ButcherTableau]
+    dphi: eqx.AbstractVar[float]
+    tol: eqx.AbstractVar[float | None]
+    max_steps: eqx.AbstractVar[int]
+
+    def step(self, u: ArrayLike, v: ArrayLike) -> tuple[Array, Array]:
+        """One step of size `dphi` (radians) along an orbit, without step-size control.
+
+        **Arguments:**
+        - `u, v`: $u = 1/r$ (units of $1/R_S$) and $du/d\\phi$, arrays of one shape.
+
+        **Returns:** `(u, v)` after the step.
+        """
+        u1, v1, _ = rk_step(self.tableau, acceleration, jnp.asarray(u), jnp.asarray(v), self.dphi)
+        return u1, v1
+
+    def __call__(self, alpha, distance, max_windings):
         alpha, distance = jnp.broadcast_arrays(alpha, distance)
         u0 = 1.0 / distance
         root = u0 * jnp.sqrt((distance - 1.0) / distance)
@@ -85,8 +126,8 @@ class _Integrator(AbstractMethod):
         inward = jnp.cos(alpha) > 0
         v0 = root * jnp.cos(alpha) / jnp.where(radial, 1.0, sa)
         v0 = jnp.where(radial, 0.0, v0)
-        phi, outcome, r_min, _ = _orbit.integrate(
-            u0, v0, scheme=scheme, dphi=dphi, tol=tol, max_steps=max_steps
+        phi, outcome, r_min, _ = integrate(
+            u0, v0, self.tableau, dphi=self.dphi, tol=self.tol, max_steps=self.max_steps
         )
         x, y = jnp.where(inward, 1.0, u0), jnp.where(inward, u0, 0.0)
         dxy = jnp.where(inward, (distance - 1.0) / distance, u0)
@@ -101,35 +142,39 @@ class _Integrator(AbstractMethod):
         return TraceResult(jnp.minimum(phi, cap), status, r_min.astype(alpha.dtype))
 
 
-class Euler(_Integrator):
-    """Semi-implicit Euler with fixed step `dphi` (radians): the original C++
-    program's scheme, kept for comparison. First order."""
+@final
+class Euler(AbstractIntegrator):
+    """Semi-implicit (symplectic) Euler with fixed step `dphi` (radians): the
+    original C++ program's scheme, kept for comparison. First order; at most
+    `max_steps` steps a ray."""
 
+    tableau: ClassVar[ButcherTableau] = _integrators.EULER
+    tol: ClassVar[None] = None
     dphi: float = eqx.field(static=True, default=0.003)
     max_steps: int = eqx.field(static=True, default=50_000)
 
-    def __call__(self, alpha, distance, max_windings):
-        return self._run(alpha, distance, max_windings, "euler", self.dphi, None, self.max_steps)
 
+@final
+class RK4(AbstractIntegrator):
+    """Classical Runge-Kutta with fixed step `dphi` (radians). Fourth order; at most
+    `max_steps` steps a ray."""
 
-class RK4(_Integrator):
-    """Classical Runge-Kutta with fixed step `dphi` (radians). Fourth order."""
-
+    tableau: ClassVar[ButcherTableau] = _integrators.RK4
+    tol: ClassVar[None] = None
     dphi: float = eqx.field(static=True, default=0.01)
     max_steps: int = eqx.field(static=True, default=20_000)
 
-    def __call__(self, alpha, distance, max_windings):
-        return self._run(alpha, distance, max_windings, "rk4", self.dphi, None, self.max_steps)
 
+@final
+class DormandPrince(AbstractIntegrator):
+    """Adaptive Dormand-Prince 5(4): tolerance `tol` per step on the error relative
+    to $|u| + |u'|$, first trial step `dphi` (radians), at most `max_steps` steps
+    (rejected ones included) a ray."""
 
-class DormandPrince(_Integrator):
-    """Adaptive Dormand-Prince 5(4), absolute tolerance `tol` per step."""
-
+    tableau: ClassVar[ButcherTableau] = _integrators.DOPRI5
     tol: float = eqx.field(static=True, default=1e-10)
+    dphi: float = eqx.field(static=True, default=0.05)
     max_steps: int = eqx.field(static=True, default=20_000)
-
-    def __call__(self, alpha, distance, max_windings):
-        return self._run(alpha, distance, max_windings, "dopri5", 0.05, self.tol, self.max_steps)
 
 
 # The accuracy ladder, measured by benchmarks/accuracy_ladder.py (and, for Exact, on
@@ -154,6 +199,7 @@ def exact_for(accuracy: float) -> Exact:
     return Exact(iterations=7)
 
 
+@final
 class Table(AbstractMethod):
     """Interpolate a `RayMap` built for the (scalar) distance: cheapest per ray when
     many rays share one camera. `accuracy`: interpolation error, radians."""
@@ -226,6 +272,7 @@ def trace(
     accuracy: float = 1e-6,
     method: str | AbstractMethod = "auto",
     max_windings: float = 10.0,
+    throw: bool = False,
 ) -> TraceResult:
     """Trace rays from a static camera to their escape angle, or to capture.
 
@@ -243,6 +290,9 @@ def trace(
       `AbstractMethod` instance (e.g. `RK4(dphi=0.01)`).
     - `max_windings`: budget of windings; rays sweeping more than
       $2\\pi \\times$ this are `UNRESOLVED`.
+    - `throw`: if True, raise (eagerly, or at run time under `jit`, through
+      `eqx.error_if`) with the message of `RayStatus.unresolved` when any ray is
+      unresolved. The default keeps the outcome as data in `status`.
 
     **Returns:** a `TraceResult` (`phi`, `status`, `r_min`, and the properties
     `captured`, `escaped`, `unresolved`, `half_turns`) of the broadcast shape.
@@ -263,4 +313,8 @@ def trace(
         if method == "auto" and distance.ndim == 0 and alpha.size >= _TABLE_MIN_RAYS:
             method = "table"  # many rays, one camera: tabulate once, interpolate
         method = method_for(method, accuracy)
-    return method(alpha, distance, max_windings)
+    result = method(alpha, distance, max_windings)
+    if throw:
+        phi = RayStatus.unresolved.error_if(result.phi, jnp.any(result.unresolved))
+        result = eqx.tree_at(lambda r: r.phi, result, phi)
+    return result

@@ -168,3 +168,32 @@ def test_jitted_derivatives_match_eager_on_a_random_batch():
     eager, jitted = np.asarray(tangents(a, d)), np.asarray(jax.jit(tangents)(a, d))
     rel = np.abs(eager - jitted) / np.maximum(np.abs(eager), 1e-300)
     assert np.max(rel) < 1e-7  # rounding differences of fusion only, amplified near alpha_c
+
+
+def test_ray_status_messages():
+    # One item per outcome, each with its own message; the unresolved one names both
+    # budgets, so a user who sees it knows which option to raise.
+    items = [jl.RayStatus.escaped, jl.RayStatus.captured, jl.RayStatus.unresolved]
+    assert len(jl.RayStatus) == 3
+    messages = [jl.RayStatus[item] for item in items]
+    assert len(set(messages)) == 3
+    assert "escaped" in messages[0] and "horizon" in messages[1]
+    assert "winding budget" in messages[2] and "step budget" in messages[2]
+    assert bool(jl.RayStatus.unresolved == jl.RayStatus.unresolved)
+    assert not bool(jl.RayStatus.unresolved == jl.RayStatus.captured)
+
+
+def test_throw_raises_the_unresolved_message():
+    # Out of budget is data by default; throw=True turns it into RayStatus.unresolved's
+    # message, eagerly and under jit; captured and escaped rays are not failures.
+    message = "beyond the winding budget"
+    a = jnp.array([0.3, 2.0])
+    r = jl.trace(a, 20.0, method=jl.RK4(dphi=0.01, max_steps=50))
+    assert bool(jnp.all(r.status == jl.UNRESOLVED))
+    with pytest.raises(Exception, match=message):
+        jl.trace(a, 20.0, method=jl.RK4(dphi=0.01, max_steps=50), throw=True)
+    f = jax.jit(lambda d: jl.trace(jnp.array([0.0, 0.3]), d, max_windings=0.2, throw=True).phi)
+    with pytest.raises(Exception, match=message):
+        jax.block_until_ready(f(20.0))
+    ok = jl.trace(jnp.array([0.0, 0.3]), 20.0, throw=True)  # one captured, one escaped
+    assert [int(s) for s in ok.status] == [jl.CAPTURED, jl.ESCAPED]
