@@ -48,15 +48,36 @@ from ._camera import (
     stack_cameras as stack_cameras,
     zoom as zoom,
 )
-from ._disk import Disk as Disk, trace_disk as trace_disk
+from ._color import (
+    XYZ_TO_SRGB as XYZ_TO_SRGB,
+    blackbody_color as blackbody_color,
+    blackbody_luminance as blackbody_luminance,
+    blackbody_xyz_quadrature as blackbody_xyz_quadrature,
+    cie_cmf as cie_cmf,
+    planck as planck,
+    shifted_blackbody as shifted_blackbody,
+)
+from ._disk import (
+    Disk as Disk,
+    DiskHits as DiskHits,
+    can_reach as can_reach,
+    disk_angle_bound as disk_angle_bound,
+    disk_redshift as disk_redshift,
+    trace_disk as trace_disk,
+)
 from ._effects import (
+    AbstractMotion as AbstractMotion,
     CircularOrbit as CircularOrbit,
     RadialInfall as RadialInfall,
     Redshift as Redshift,
     aberrate as aberrate,
+    aberrate_cos as aberrate_cos,
     blackbody_rgb as blackbody_rgb,
     doppler_factor as doppler_factor,
     frequency_ratio as frequency_ratio,
+    infall_speed as infall_speed,
+    lorentz_factor as lorentz_factor,
+    orbital_speed as orbital_speed,
     static_blueshift as static_blueshift,
 )
 from ._fit import (
@@ -93,6 +114,11 @@ from ._render import (
     sky_directions as sky_directions,
 )
 from ._scene import Scene as Scene, load_scene as load_scene
+from ._schema import (
+    SceneKey as SceneKey,
+    scene_table_keys as scene_table_keys,
+    scene_table_types as scene_table_types,
+)
 from ._shard import (
     ray_mesh as ray_mesh,
     shard_map_rays as shard_map_rays,
@@ -118,6 +144,7 @@ from ._sky import (
     sky_from_table as sky_from_table,
     to_rgb as to_rgb,
 )
+from ._weak import weak_field_escape_angle as weak_field_escape_angle
 
 
 def __getattr__(name):

@@ -47,7 +47,7 @@ from ._color import (
     shifted_blackbody as shifted_blackbody,
 )
 from ._schema import Key, anything, register
-from ._sky import AbstractSky, BlackbodyStars as BlackbodyStars
+from ._sky import BlackbodyStars as BlackbodyStars
 
 # ---------------------------------------------------------------------- observers
 
@@ -225,11 +225,3 @@ _MODES = ("spectral", "bolometric")
 })  # fmt: skip
 def _redshift_from_table(t, base) -> Redshift:
     return Redshift(t["mode"])
-
-
-def shifted_sky(sky: AbstractSky, n: Float[Array, "... 3"], g, mode: str) -> Float[Array, "... 3"]:
-    """Radiance `(..., 3)` of `sky` at unit directions `n (..., 3)` seen with frequency
-    ratio `g` (broadcasting with `n[..., 0]`), `mode` as `Redshift`: `sky.shifted(n, g,
-    mode)` (skies with a spectrum shift it; plain RGB skies are scaled by $g^4$ or $g^3$;
-    sums part by part)."""
-    return sky.shifted(n, g, mode)

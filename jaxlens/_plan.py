@@ -46,7 +46,9 @@ class Plan:
     - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$).
     - `aberration`: `None`, `"radial"` or `"boost"`; `redshift`: `None`,
       `"bolometric"` or `"spectral"`; `disk`: whether disk rays are traced.
-    - `disk_rays`: rays a block follows through the disk plane (`None`: all, masked).
+    - `disk_rays`: rays a block follows through the disk plane (`None`: all, masked);
+      `disk_reach`: the most rays of one block that can reach the disk (before
+      rounding up to `disk_rays`).
     - `centred`, `at_origin`: the camera's view is unrotated / its frame is the sky's.
     - `symmetric`: the mirror-symmetric path (centred, no tangential motion, no disk).
     - `frames`, `rows`, `pair`: frames and pixel rows a block holds (a mirrored pair
@@ -62,6 +64,7 @@ class Plan:
     redshift: str | None
     disk: bool
     disk_rays: int | None
+    disk_reach: int | None
     centred: bool
     at_origin: bool
     symmetric: bool
@@ -88,7 +91,9 @@ class Plan:
 
     def kernel_key(self) -> "Plan":
         """The plan with what does not change the compiled kernel blanked."""
-        return dataclasses.replace(self, blocks=0, samples=0, weak_bound=None, reasons=())
+        return dataclasses.replace(
+            self, disk_reach=None, blocks=0, samples=0, weak_bound=None, reasons=()
+        )
 
     def __str__(self):
         head = (
@@ -215,7 +220,7 @@ def _plan(scene, chunk_samples):
                        "go through the escape angle, mirrored")  # fmt: skip
     b = blocking(cam, chunk_samples, symmetric=symmetric)
     samples_view = cam.width * cam.height * cam.supersample**2
-    base = Plan("table", aberration, redshift, has_disk, None, centred, at_origin, symmetric,
+    base = Plan("table", aberration, redshift, has_disk, None, None, centred, at_origin, symmetric,
                 b["frames"], b["rows"], b["pair"], b["blocks"], b["samples"], None, ())  # fmt: skip
 
     weak_bound = None
@@ -279,5 +284,6 @@ def _plan(scene, chunk_samples):
     )
     return dataclasses.replace(
         base, geometry=geometry, disk_rays=disk_rays, weak_bound=weak_bound,
+        disk_reach=None if disk_rays is None else max(counts),
         reasons=tuple(reasons),
     )  # fmt: skip

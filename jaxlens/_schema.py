@@ -144,13 +144,15 @@ def register(section: str, name: str, keys: dict[str, Key], *, check=None):
 
 
 def types(section: str) -> tuple[str, ...]:
-    """The registered type names of a section, in registration order."""
+    """The table types a scene file may name in `section` (`"sky"`, `"motion"`,
+    `"redshift"`, `"disk"`), in registration order: e.g. the `type` of a `[[sky]]`."""
     _load()
     return tuple(_REGISTRY.get(section, {}))
 
 
 def keys(section: str, name: str) -> dict[str, Key]:
-    """The keys of table type `name` of `section`."""
+    """The keys of table type `name` of `section`: each a `Key` (kind, default, check,
+    and what is valid, in words with its unit)."""
     _load()
     return _REGISTRY[section][name].keys
 
@@ -187,3 +189,10 @@ def build(section: str, validated: dict, base: Path | str = ".") -> Any:
 def _load():
     # The registrations live beside their classes; importing the modules runs them.
     from . import _disk, _effects, _sky  # noqa: F401
+
+
+# Public names (jaxlens.SceneKey, scene_table_types, scene_table_keys): for tools that
+# list or document what a scene file may hold.
+SceneKey = Key
+scene_table_types = types
+scene_table_keys = keys

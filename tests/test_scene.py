@@ -5,18 +5,20 @@ import math
 import numpy as np
 import pytest
 
-from jaxlens._camera import Camera
-from jaxlens._io import write_image
-from jaxlens._scene import Scene, load_scene, validate
-from jaxlens._sky import (
+import jaxlens as jl
+from jaxlens import (
+    Camera,
     Checker,
     DefaultSky,
     GaussianStar,
     Panorama,
     PlaneImage,
+    Scene,
     SkySum,
     StarField,
     Uniform,
+    load_scene,
+    write_image,
 )
 
 FULL = """
@@ -105,10 +107,11 @@ def test_defaults_and_render():
     scene = Scene.from_dict({"camera": {"width": 8, "height": 6, "supersample": 1}})
     assert isinstance(scene.sky, SkySum)  # the default: procedural sky + a star
     assert float(scene.camera.distance) == 20.0
-    img = scene.render()
+    img = jl.render(scene)
     assert img.shape == (6, 8, 3) and np.all(np.isfinite(img))
-    v = validate({})
-    assert v["camera"]["width"] == 960 and v["animation"]["start"] == 1e5
+    default = Scene.from_dict({})
+    assert (default.camera.width, default.camera.height) == (960, 540)
+    assert default.motion is None and default.redshift is None and default.disk is None
 
 
 @pytest.mark.parametrize(
@@ -136,7 +139,7 @@ def test_defaults_and_render():
 )  # fmt: skip
 def test_validation_names_key_value_and_valid_range(data, message):
     with pytest.raises(ValueError, match=message):
-        validate(data, source="s.toml")
+        Scene.from_dict(data, source="s.toml")
 
 
 def test_file_errors(tmp_path):

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 import jaxlens as jl
-from jaxlens import _schema  # the registry: which types and keys exist (no public route)
 
 rad = math.radians
 CAM = jl.Camera(12.0, rad(100.0), 12, 8, supersample=1)
@@ -114,14 +113,14 @@ def cases(folder):
 
 
 def test_every_registered_type_has_cases(folder):
-    assert set(cases(folder)) == set(_schema.types("sky"))
+    assert set(cases(folder)) == set(jl.scene_table_types("sky"))
     # scene files list the types in this order (their error messages do too)
-    assert _schema.types("sky")[:7] == (
+    assert jl.scene_table_types("sky")[:7] == (
         "star", "stars", "panorama", "plane", "checker", "default", "uniform"
     )  # fmt: skip
 
 
-@pytest.mark.parametrize("kind", _schema.types("sky"))
+@pytest.mark.parametrize("kind", jl.scene_table_types("sky"))
 def test_table_builds_the_python_sky(kind, folder):
     for table, want in cases(folder)[kind]:
         got = jl.sky_from_table({"type": kind, **table}, base=folder)
@@ -135,23 +134,23 @@ def test_table_builds_the_python_sky(kind, folder):
         assert not np.array_equal(default(N), other(N))
 
 
-def _wrong_kind(key: _schema.Key):
+def _wrong_kind(key: jl.SceneKey):
     """A value of the wrong type for a key: a string for numbers, a number otherwise."""
     return {"bool": 1, "str": 5}.get(key.kind, "x")
 
 
 @pytest.mark.parametrize(
     "kind,name",
-    [(k, n) for k in _schema.types("sky") for n in _schema.keys("sky", k)],
+    [(k, n) for k in jl.scene_table_types("sky") for n in jl.scene_table_keys("sky", k)],
 )
 def test_a_value_of_the_wrong_type_names_key_value_and_valid(kind, name):
-    key = _schema.keys("sky", kind)[name]
+    key = jl.scene_table_keys("sky", kind)[name]
     bad = _wrong_kind(key)
     shown = f'"{bad}"' if isinstance(bad, str) else repr(bad)
     message = f"sky ({kind}) {name} = {shown} is not valid: expected {key.valid}"
     with pytest.raises(ValueError, match=re.escape(message)):
         # (image types need a path, else the first error is the missing path)
-        path = {"path": "p.png"} if "path" in _schema.keys("sky", kind) else {}
+        path = {"path": "p.png"} if "path" in jl.scene_table_keys("sky", kind) else {}
         jl.sky_from_table({"type": kind, **path, name: bad})
 
 
