@@ -62,8 +62,8 @@ def run(args):
 
     cli.enable_x64()
 
-    from ._camera import approach, orbit, pan, zoom
-    from ._render import render_frames
+    import jaxlens as jl  # the public functions, looked up when the command runs
+
     from ._scene import build_camera, build_sky
 
     out = _io.check_output_path(args.output)
@@ -97,10 +97,10 @@ def run(args):
     camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
     sky = build_sky(scene["sky"])
     values = path_values(kind, start, stop, frames)
-    step = {"approach": approach, "orbit": orbit, "pan": pan, "zoom": zoom}[kind]
+    step = {"approach": jl.approach, "orbit": jl.orbit, "pan": jl.pan, "zoom": jl.zoom}[kind]
     cameras = step(camera, values if kind == "approach" else np.radians(values))
     t = time.perf_counter()
-    images = render_frames(cameras, sky, accuracy=scene["accuracy"])
+    images = jl.render_frames(cameras, sky, accuracy=scene["accuracy"])
     exposure = scene["output"]["exposure"]
     frames_dir.mkdir(exist_ok=True)
     _io.check_output_path(frames_dir / f"frame_0000.{args.frame_format}")

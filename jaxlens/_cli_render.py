@@ -152,7 +152,8 @@ def run(args):
 
     cli.enable_x64()
 
-    from ._render import render
+    import jaxlens as jl  # the public functions, looked up when the command runs
+
     from ._scene import build_camera, build_sky
 
     out = _io.check_output_path(args.output)
@@ -163,7 +164,7 @@ def run(args):
     camera = build_camera(scene["camera"], dtype=pixel_dtype(args, scene))
     sky = build_sky(scene["sky"])
     t = time.perf_counter()
-    img = render(camera, sky, accuracy=scene["accuracy"])
+    img = jl.render(camera, sky, accuracy=scene["accuracy"])
     path = _io.write_image(out, img, exposure=scene["output"]["exposure"])
     c = scene["camera"]
     print(
