@@ -461,6 +461,13 @@ def clipped_mean(m, lo, hi, noise):
     deviation `noise`: what an integer image stores where the noise crosses 0 or 1.
 
     $E = m + E[(lo - m - n)_+] - E[(m + n - hi)_+]$; `lo = -inf`, `hi = inf` give `m`.
+    Broadcasts; works under `jit`, `vmap` and `grad`.
+
+    **Arguments:** `m`: the noise-free pixel value; `lo`, `hi`: the stored range (0 and
+    1 for an integer image normalised to [0, 1]); `noise`: the noise's standard
+    deviation, in the units of `m`.
+
+    **Returns:** the expected stored value, in the units of `m`.
     """
     s = jnp.maximum(noise, 1e-30)
     low = jnp.where(
