@@ -25,10 +25,18 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 from PIL import Image, ImageDraw  # noqa: E402
 
-from jaxlens._camera import Camera, approach  # noqa: E402
-from jaxlens._io import to_display, write_image  # noqa: E402
-from jaxlens._render import render, render_frames  # noqa: E402
-from jaxlens._sky import DefaultSky, GaussianStar, Panorama, equirectangular  # noqa: E402
+from jaxlens import (  # noqa: E402
+    Camera,
+    DefaultSky,
+    GaussianStar,
+    Panorama,
+    approach,
+    equirectangular,
+    render,
+    render_frames,
+    to_display,
+    write_image,
+)
 
 OUT = ROOT / "docs" / "images"
 F32 = np.float32

@@ -84,6 +84,7 @@ from ._fit import (
     RS_SUN_M as RS_SUN_M,
     EscapeTable as EscapeTable,
     RingFit as RingFit,
+    clipped_mean as clipped_mean,
     distance_in_metres as distance_in_metres,
     einstein_ring_angle as einstein_ring_angle,
     fit_ring as fit_ring,
@@ -94,6 +95,8 @@ from ._fit import (
 )
 from ._io import (
     read_image as read_image,
+    srgb_decode as srgb_decode,
+    srgb_encode as srgb_encode,
     to_display as to_display,
     write_gif as write_gif,
     write_image as write_image,

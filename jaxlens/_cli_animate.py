@@ -62,9 +62,7 @@ def run(args):
 
     cli.enable_x64()
 
-    from ._camera import approach, orbit, pan, zoom
-    from ._render import render
-    from ._scene import Scene
+    import jaxlens as jl  # the public functions, looked up when the command runs
 
     out = _io.check_output_path(args.output)
     video = out.suffix.lower() == ".mp4"
@@ -94,12 +92,12 @@ def run(args):
     if frames_dir.exists() and not frames_dir.is_dir():
         raise ValueError(f"frames folder {str(frames_dir)!r} exists and is not a folder")
 
-    base = Scene.from_validated(scene, dtype=pixel_dtype(args, scene))
+    base = jl.Scene.from_validated(scene, dtype=pixel_dtype(args, scene))
     values = path_values(kind, start, stop, frames)
-    step = {"approach": approach, "orbit": orbit, "pan": pan, "zoom": zoom}[kind]
+    step = {"approach": jl.approach, "orbit": jl.orbit, "pan": jl.pan, "zoom": jl.zoom}[kind]
     cameras = step(base.camera, values if kind == "approach" else np.radians(values))
     t = time.perf_counter()
-    images = render(base.replace(camera=cameras))
+    images = jl.render(base.replace(camera=cameras))
     exposure = base.exposure
     frames_dir.mkdir(exist_ok=True)
     _io.check_output_path(frames_dir / f"frame_0000.{args.frame_format}")

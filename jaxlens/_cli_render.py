@@ -152,17 +152,16 @@ def run(args):
 
     cli.enable_x64()
 
-    from ._render import render
-    from ._scene import Scene
+    import jaxlens as jl  # the public functions, looked up when the command runs
 
     out = _io.check_output_path(args.output)
     if out.suffix.lower() in _io.ANIMATION_FORMATS:
         kind = out.suffix[1:].upper()
         raise ValueError(f"output {str(out)!r}: {kind} files are animations; use `jaxlens animate`")
     v = scene_dict(args)
-    scene = Scene.from_validated(v, dtype=pixel_dtype(args, v))
+    scene = jl.Scene.from_validated(v, dtype=pixel_dtype(args, v))
     t = time.perf_counter()
-    img = render(scene)
+    img = jl.render(scene)
     path = _io.write_image(out, img, exposure=scene.exposure)
     c = v["camera"]
     print(

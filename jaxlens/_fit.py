@@ -1,20 +1,21 @@
-"""Fit the black hole to an observed Einstein ring: autodiff through the renderer, optimistix.
+"""Fit the black hole to an observed Einstein ring: autodiff of a forward model, optimistix.
 
-The observation model (a contract, `issues show 4`): a static pinhole camera at distance
-$D$ (units of R_S) looks straight at the hole with horizontal field of view FOV; one star
-sits exactly behind the hole at infinity, Gaussian in angular distance $d$ on the sky,
+The observation model: a static pinhole camera at distance $D$ (units of R_S) looks
+straight at the hole with horizontal field of view FOV; one star sits exactly behind
+the hole at infinity, Gaussian in angular distance $d$ on the sky,
 $I = A e^{-d^2 / 2\\sigma^2}$; a uniform sky level `floor` lies behind everything;
 captured rays are 0; pixels are area-averaged; the noise is additive.
 
 The model image is radially symmetric, so each area sample needs only its local angle
-$\\alpha$: the escape angle comes from the lead's `RayMap` (differentiable with respect to
-$D$), the angular distance from the source is $|(\\Phi \\bmod 2\\pi) - \\pi|$ (PHYSICS.md),
-and samples that straddle the shadow edge are weighted by the exact fraction of their
-square footprint outside the (locally straight) edge, so the edge contributes gradient
-with respect to $D$ and FOV. `optimistix.least_squares` with Levenberg-Marquardt then
-solves for $\\log(D - 1.5)$, $\\operatorname{logit}(\\mathrm{FOV}/\\pi)$, $\\log\\sigma$,
-$A$ and the floor; standard errors come from the Gauss-Newton curvature $J^T J$ and the
-residual variance.
+$\\alpha$: the escape angle comes from an `EscapeTable` of the distance (differentiable
+with respect to $D$), the angular distance from the source is
+$|(\\Phi \\bmod 2\\pi) - \\pi|$, and samples that straddle the shadow edge are weighted
+by the exact fraction of their square footprint outside the (locally straight) edge, so
+the edge contributes gradient with respect to $D$ and FOV. `optimistix.least_squares`
+with Levenberg-Marquardt then solves for $\\log(D - 1.5)$,
+$\\operatorname{logit}(\\mathrm{FOV}/\\pi)$, $\\log\\sigma$, $A$, the floor and the
+relativistic rings' flux factor; standard errors come from the Gauss-Newton curvature
+$J^T J$ and the residual variance.
 """
 
 import functools
@@ -114,11 +115,11 @@ class EscapeTable(eqx.Module):
     Values of `trace` on a grid uniform in $\\tau = \\ln(\\alpha - \\alpha_{sh})$ from
     $10^{-10}\\alpha_{sh}$ to $\\pi/2$ (a pinhole camera sees nothing wider), read back by
     four-point Lagrange interpolation in $\\tau$ and, below the first knot, the
-    logarithmic law (linear in $\\tau$). Unlike the lead's `RayMap` (cubic Hermite with
-    slopes from forward-mode autodiff), the table holds values only, so its derivative
-    with respect to the distance is first-order autodiff of the closed form: the
-    Levenberg-Marquardt program that differentiates it compiles in a quarter of the time
-    (45 s against 190 s measured on the shared 2-core machine).
+    logarithmic law (linear in $\\tau$). Unlike `RayMap` (cubic Hermite with slopes from
+    forward-mode autodiff), the table holds values only, so its derivative with respect
+    to the distance is first-order autodiff of the closed form: the Levenberg-Marquardt
+    program that differentiates it compiles in a quarter of the time (45 s against 190 s
+    measured on a 2-core CPU).
 
     **Fields:** `distance` (units of R_S), `alpha_sh` (shadow angle, radians), the knot
     grid `tau0`, `dtau` and the knot values `phi` (radians).
@@ -350,14 +351,18 @@ def ring_image(
     sigma: ArrayLike,
     brightness: ArrayLike = 1.0,
     floor: ArrayLike = 0.0,
+    ring_flux: ArrayLike = 1.0,
     supersample: int = 4,
 ) -> Float[Array, "H W"]:
     """The observation model: the single-channel image of a Gaussian star exactly behind
     the hole over a uniform floor, as the fit sees it.
 
     A pure function of its array arguments: works under `jit`, `vmap` and `grad`
-    (forward and reverse mode) with respect to `distance`, `fov`, `sigma`, `brightness`
-    and `floor`. Pixel conventions of PHYSICS.md; each pixel is the area average by
+    (forward and reverse mode) with respect to `distance`, `fov`, `sigma`, `brightness`,
+    `floor` and `ring_flux`. Pixel (column $i$, row $j$) spans $x \\in [i - W/2, i + 1 - W/2]$,
+    $y \\in [H/2 - j - 1, H/2 - j]$ on the image plane at focal length
+    $f = (W/2) / \\tan(\\mathrm{FOV}/2)$ (row 0 at the top); its local angle from the
+    hole is $\\alpha = \\arctan(\\sqrt{x^2 + y^2} / f)$. Each pixel is the area average by
     $k \\times k$ Gauss-Legendre nodes, the nodes straddling the shadow edge weighted by
     their exact footprint coverage (so the edge contributes gradient).
 
@@ -367,6 +372,8 @@ def ring_image(
     - `width`, `height`: image size (pixels, static).
     - `sigma`: the star's Gaussian width in angular distance (radians).
     - `brightness`: peak radiance $A$ of the star; `floor`: the uniform sky level.
+    - `ring_flux`: factor on the flux of the relativistic rings (images of order 1 and
+      2); 1 is the exact area average, as `RingFit.ring_flux` reports it.
     - `supersample`: $k$ (static).
 
     **Returns:** linear intensity `(height, width)`; captured rays are 0.
@@ -379,7 +386,7 @@ def ring_image(
     g, t, c = _pixel_basis(
         table, focal, jnp.asarray(sigma, dtype), x0, y0, block=1, k=int(supersample)
     )
-    return brightness * (g + t) + floor * c
+    return brightness * (g + ring_flux * t) + floor * c
 
 
 # ------------------------------------------------------------------ parametrisation
@@ -454,6 +461,13 @@ def clipped_mean(m, lo, hi, noise):
     deviation `noise`: what an integer image stores where the noise crosses 0 or 1.
 
     $E = m + E[(lo - m - n)_+] - E[(m + n - hi)_+]$; `lo = -inf`, `hi = inf` give `m`.
+    Broadcasts; works under `jit`, `vmap` and `grad`.
+
+    **Arguments:** `m`: the noise-free pixel value; `lo`, `hi`: the stored range (0 and
+    1 for an integer image normalised to [0, 1]); `noise`: the noise's standard
+    deviation, in the units of `m`.
+
+    **Returns:** the expected stored value, in the units of `m`.
     """
     s = jnp.maximum(noise, 1e-30)
     low = jnp.where(
@@ -1253,7 +1267,7 @@ def fit_ring(
 
 
 # Degeneracy thresholds: a relative standard error of D or FOV above 10 % means the
-# image does not pin them down (the issue asks for 1 %); a variance inflation above 1e9
+# image does not pin them down (the goal is 1 %); a variance inflation above 1e9
 # (multiple correlation of D, FOV or sigma with the others above 1 - 1e-9) means the
 # curvature is numerically singular along a valley where D trades off against FOV and
 # sigma. Rings without a visible shadow edge and sigma fitted sit at 1e6-1e8 with D

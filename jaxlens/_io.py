@@ -34,13 +34,20 @@ def _oiio():
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function (IEC 61966-2-1) on linear values, clipped to [0, 1]."""
+    """The sRGB transfer function (IEC 61966-2-1) on linear values, clipped to [0, 1]
+    (NaN to 0). Plain NumPy, not traceable.
+
+    **Returns:** encoded values in [0, 1], float32, of the shape of `linear`.
+    """
     x = np.clip(np.nan_to_num(np.asarray(linear, np.float32), nan=0.0), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
 def srgb_decode(encoded: np.ndarray) -> np.ndarray:
-    """Inverse of `srgb_encode`: sRGB-encoded values in [0, 1] to linear."""
+    """Inverse of `srgb_encode`: sRGB-encoded values in [0, 1] to linear. Plain NumPy.
+
+    **Returns:** linear values, float32, of the shape of `encoded`.
+    """
     x = np.asarray(encoded, np.float32)
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from jaxlens import cli
-from jaxlens._io import read_image, write_image
+import jaxlens as jl
+from jaxlens import cli, read_image, write_image
 
 
 @pytest.fixture(autouse=True)
@@ -133,12 +133,10 @@ def test_usage_errors_are_one_line(capsys):
 
 
 def test_interrupt_leaves_no_file(tmp_path, capsys, monkeypatch):
-    import jaxlens._render as r
-
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(r, "render", interrupted)
+    monkeypatch.setattr(jl, "render", interrupted)
     code, _, err = run(["render", "--size", "8x6", "-o", str(tmp_path / "o.png")], capsys)
     assert code == 130 and "interrupted" in err and os.listdir(tmp_path) == []
 
@@ -186,12 +184,10 @@ def test_animate_writes_frames_and_mp4(tmp_path, capsys):
 
 
 def test_animate_mp4_without_pyav_fails_before_rendering(tmp_path, capsys, monkeypatch):
-    import jaxlens._render as r
-
     def not_reached(*a, **k):
         raise AssertionError("rendered although the MP4 cannot be written")
 
-    monkeypatch.setattr(r, "render_frames", not_reached)
+    monkeypatch.setattr(jl, "render", not_reached)
     monkeypatch.setitem(sys.modules, "av", None)  # `import av` raises ImportError
     code, _, err = run(["animate", "--size", "8x6", "-o", str(tmp_path / "a.mp4")], capsys)
     assert code == 2 and err.count("\n") == 1 and "pip install 'jaxlens[video]'" in err

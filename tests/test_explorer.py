@@ -2,17 +2,20 @@
 a slider, and the image changes (and stays a valid render)."""
 
 import math
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
 
 pytest.importorskip("ipywidgets")
 
-from jaxlens._explorer import Explorer  # noqa: E402
+import jaxlens as jl  # noqa: E402
 
 
 def test_sliders_rerender_the_image():
-    ex = Explorer(48, 27)
+    ex = jl.Explorer(48, 27)
     first, png = ex.image.copy(), ex.view.value
     assert first.shape == (27, 48, 3) and png[:8] == b"\x89PNG\r\n\x1a\n"
     # Star behind the hole at D = 20: an Einstein ring of 20.2 degrees, black shadow.
@@ -35,7 +38,29 @@ def test_sliders_rerender_the_image():
 
 
 def test_bad_setting_is_reported_not_raised():
-    ex = Explorer(16, 9)
+    ex = jl.Explorer(16, 9)
     ex.distance.min = -1.0  # log10: lets the slider reach D = 0.5, which the camera refuses
     ex.distance.value = 0.5
     assert ex.status.value.startswith("error: distance=0.5")
+
+
+def test_jaxlens_works_without_ipywidgets():
+    """ipywidgets is an optional extra: `import jaxlens` does not import it, and only
+    building an `Explorer` needs it."""
+    code = textwrap.dedent(
+        """
+        import sys
+        import jaxlens as jl
+        assert "ipywidgets" not in sys.modules
+        sys.modules["ipywidgets"] = None  # `import ipywidgets` raises ImportError
+        try:
+            jl.Explorer(8, 4)
+        except ImportError:
+            pass
+        else:
+            raise AssertionError("an Explorer was built without ipywidgets")
+        """
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+    with pytest.raises(AttributeError, match="no attribute 'Explorr'"):
+        jl.Explorr

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from jaxlens import _io
-from jaxlens._io import (
+from jaxlens import (
     read_image,
     srgb_decode,
     srgb_encode,
+    to_display,
     write_gif,
     write_image,
     write_video,
@@ -92,7 +92,8 @@ def test_every_channel_count_writes_and_reads(tmp_path, ext, channels):
 def _patch_image_output(monkeypatch, write_image, error=""):
     """Make OpenImageIO's `ImageOutput` open and close real files but write through
     `write_image(out, data)` (`out`: the real output) and report `error`."""
-    oiio = _io._oiio()
+    import OpenImageIO as oiio
+
     real = oiio.ImageOutput
 
     class Patched:
@@ -235,9 +236,16 @@ def _decode(path):
 
 @pytest.mark.parametrize("codec", ["libx264", "mpeg4"])
 def test_mp4_video(tmp_path, monkeypatch, codec):
-    pytest.importorskip("av")
+    av = pytest.importorskip("av")
     if codec == "mpeg4":  # the fallback for an FFmpeg without libx264
-        monkeypatch.setattr(_io, "_video_codec", lambda av: "mpeg4")
+        real = av.codec.Codec
+
+        def without_x264(name, mode="r"):
+            if name == "libx264":
+                raise av.codec.codec.UnknownCodecError(name)
+            return real(name, mode)
+
+        monkeypatch.setattr(av.codec, "Codec", without_x264)
     frames = _smooth_frames(6, 48, 64)
     p = write_video(tmp_path / "a.mp4", frames, fps=12, exposure=0.5)
     assert sorted(os.listdir(tmp_path)) == ["a.mp4"]
@@ -251,13 +259,13 @@ def test_mp4_video(tmp_path, monkeypatch, codec):
     # a mean of 2.0 to 2.3 levels of 255 measured (libx264 CRF 18 and mpeg4 q2, PyAV 18.1;
     # mostly the 4:2:0 chroma, which alone costs 1.3 to 1.7 on such gradients).
     for i in range(6):
-        want = _io.to_display(frames[i], exposure=0.5).astype(int)
+        want = to_display(frames[i], exposure=0.5).astype(int)
         err = np.abs(got[i].astype(int) - want).mean()
         assert err < 5, (i, err)
         # ... and not another frame's, nor the frame without the exposure.
-        assert np.abs(got[i].astype(int) - _io.to_display(frames[i]).astype(int)).mean() > 10
-        assert np.abs(got[i].astype(int) - _io.to_display(frames[(i + 3) % 6],
-                                                           exposure=0.5)).mean() > 10  # fmt: skip
+        assert np.abs(got[i].astype(int) - to_display(frames[i]).astype(int)).mean() > 10
+        other = to_display(frames[(i + 3) % 6], exposure=0.5).astype(int)
+        assert np.abs(got[i].astype(int) - other).mean() > 10
 
 
 def test_mp4_odd_size_is_padded_with_the_last_row_and_column(tmp_path):
@@ -268,7 +276,7 @@ def test_mp4_odd_size_is_padded_with_the_last_row_and_column(tmp_path):
     path = write_video(tmp_path / "odd.mp4", frames, fps=5)
     facts, got = _decode(path)
     assert facts["size"] == (64, 48) and got.shape == (3, 48, 64, 3) and facts["fps"] == 5
-    want = _io.to_display(frames[0]).astype(int)
+    want = to_display(frames[0]).astype(int)
     assert np.abs(got[0, :45, :61].astype(int) - want[:45, :61]).mean() < 5  # measured 2.1
     # The padding, in the luma plane (full resolution): the padded row (column) is the
     # last one again, to within 1 level measured; black padding differs by > 80.
@@ -278,23 +286,25 @@ def test_mp4_odd_size_is_padded_with_the_last_row_and_column(tmp_path):
     assert np.abs(luma[:, :47, 63] - luma[:, :47, 62]).mean() < 3
     facts, got = _decode(write_video(tmp_path / "one.mp4", np.full((1, 1, 1, 3), 0.5)))
     assert facts["size"] == (2, 2) and got.shape == (1, 2, 2, 3)
-    assert np.abs(got.astype(int) - _io.to_display(np.float32(0.5))).max() <= 3
+    assert np.abs(got.astype(int) - to_display(np.float32(0.5))).max() <= 3
 
 
 def test_mp4_write_is_atomic_on_interrupt_and_failure(tmp_path, monkeypatch):
-    pytest.importorskip("av")
+    av = pytest.importorskip("av")
     target = tmp_path / "v.mp4"
     target.write_bytes(b"previous")
-    real = _io.to_display
+    real = av.VideoFrame
     calls = []
 
-    def failing(image, **kw):
-        calls.append(sorted(os.listdir(tmp_path)))
-        if len(calls) == 4:  # mid-video: the container is open, frames are encoded
-            raise error
-        return real(image, **kw)
+    class Failing:  # PyAV's frames, failing at the fourth (`error` is set below)
+        @staticmethod
+        def from_ndarray(array, **kw):
+            calls.append(sorted(os.listdir(tmp_path)))
+            if len(calls) == 4:  # mid-video: the container is open, frames are encoded
+                raise error
+            return real.from_ndarray(array, **kw)
 
-    monkeypatch.setattr(_io, "to_display", failing)
+    monkeypatch.setattr(av, "VideoFrame", Failing)
     for error in (KeyboardInterrupt(), OSError("disk full")):
         calls.clear()
         with pytest.raises(type(error)):
@@ -327,12 +337,11 @@ def test_mp4_bad_input(tmp_path):
 
 
 def test_mp4_without_pyav_names_the_extra(tmp_path, monkeypatch):
+    # (`jaxlens animate -o x.mp4` makes the same check before rendering: test_cli_render.)
     monkeypatch.setitem(sys.modules, "av", None)  # `import av` raises ImportError
-    for call in (lambda: write_video(tmp_path / "a.mp4", _smooth_frames(2, 8, 8)),
-                 _io.require_video):  # fmt: skip
-        with pytest.raises(ImportError, match=r"jaxlens\[video\]") as e:
-            call()
-        assert isinstance(e.value, ValueError) and e.value.name == "av"
+    with pytest.raises(ImportError, match=r"jaxlens\[video\]") as e:
+        write_video(tmp_path / "a.mp4", _smooth_frames(2, 8, 8))
+    assert isinstance(e.value, ValueError) and e.value.name == "av"
     assert os.listdir(tmp_path) == []
 
 
@@ -345,9 +354,9 @@ def test_written_files_get_the_usual_permissions(tmp_path, name):
         frames = np.full((2, 4, 6, 3), 0.5, np.float32)
         path = tmp_path / name
         if name.endswith(".gif"):
-            _io.write_gif(path, frames)
+            write_gif(path, frames)
         else:
-            _io.write_image(path, frames[0])
+            write_image(path, frames[0])
         assert stat.S_IMODE(path.stat().st_mode) == 0o644
     finally:
         os.umask(mask)

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import jaxlens
-from jaxlens._shard import ray_mesh, shard_map_rays, trace_sharded
+from jaxlens import ray_mesh, shard_map_rays, trace_sharded
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -36,7 +36,7 @@ _CHILD = textwrap.dedent(
     import jax.numpy as jnp
     import numpy as np
     import jaxlens
-    from jaxlens._shard import ray_mesh, shard_map_rays, trace_sharded
+    from jaxlens import ray_mesh, shard_map_rays, trace_sharded
 
     out = sys.argv[1]
     rng = np.random.default_rng(5)
