@@ -38,9 +38,7 @@ def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> 
             scene = dataclasses.replace(scene, accuracy=accuracy)
         return scene
     if not isinstance(scene_or_camera, Camera):
-        raise ValueError(
-            f"expected a Scene or a Camera, got {type(scene_or_camera).__name__}"
-        )
+        raise ValueError(f"expected a Scene or a Camera, got {type(scene_or_camera).__name__}")
     if sky is None:
         raise ValueError("render(camera, sky): a sky is needed with a camera")
     return Scene(scene_or_camera, sky, accuracy=1e-8 if accuracy is None else accuracy)

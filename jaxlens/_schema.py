@@ -168,8 +168,7 @@ def validate(section: str, where: str, data, *, default_type: str | None = None)
     kind = data.get("type", default_type)
     if kind not in entries:
         raise ValueError(
-            f"{where} type = {describe(kind)} is not valid: expected one of "
-            f"{', '.join(entries)}"
+            f"{where} type = {describe(kind)} is not valid: expected one of {', '.join(entries)}"
         )
     entry = entries[kind]
     out = table(f"{where} ({kind})", data, entry.keys, ignore=("type",))

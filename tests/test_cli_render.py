@@ -38,6 +38,50 @@ def test_render_star_exr(tmp_path, capsys):
     assert os.listdir(tmp_path) == ["x.exr"]
 
 
+EFFECTS_SCENE = """
+accuracy = 1e-8
+[camera]
+distance = 15.0
+fov_deg = 80.0
+width = 24
+height = 16
+supersample = 1
+[[sky]]
+type = "uniform"
+level = 0.2
+[effects.motion]
+type = "orbit"
+[effects.redshift]
+mode = "spectral"
+[effects.disk]
+r_out = 10.0
+inclination_deg = 75.0
+crossings = 2
+steps = 16
+"""
+
+
+def test_render_a_scene_file_with_effects_and_a_disk(tmp_path, capsys):
+    # The scene file's [effects] tables reach `jaxlens render`: the image is the one
+    # jl.render makes of jl.load_scene of the same file, float32 output round-off only.
+    scene_file = tmp_path / "effects.toml"
+    scene_file.write_text(EFFECTS_SCENE)
+    out = tmp_path / "fx.exr"
+    code, stdout, err = run(["render", str(scene_file), "-o", str(out)], capsys)
+    assert code == 0 and "wrote" in stdout and err == ""
+    scene = jl.load_scene(scene_file)
+    assert isinstance(scene.motion, jl.CircularOrbit) and scene.disk is not None
+    want = jl.render(scene, dtype=np.float32)
+    np.testing.assert_allclose(read_image(out), want, rtol=0, atol=1e-6)
+    # the disk is in the image (brighter than the 0.2 sky, which the shift changes)
+    assert read_image(out).max() > 1.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(EFFECTS_SCENE.replace('type = "orbit"', 'type = "spin"'))
+    code, _, err = run(["render", str(bad), "-o", str(tmp_path / "b.exr")], capsys)
+    assert code == 2 and "expected one of orbit, infall" in err and err.count("\n") == 1
+    assert not (tmp_path / "b.exr").exists()
+
+
 def test_options_override_the_scene_file(tmp_path, capsys):
     scene = tmp_path / "s.toml"
     scene.write_text(

@@ -160,6 +160,7 @@ def test_temperature_profile():
     t = np.asarray(disk.temperature_at(r))
     assert t[0] == 0.0
     assert t[1] == pytest.approx(1e4, rel=1e-12)  # the peak, at (7/6)^2 r_in
+
     def profile(x):  # T / T_peak up to a constant, x = r / r_in
         return x**-0.75 * (1 - x**-0.5) ** 0.25
 

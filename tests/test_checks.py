@@ -1,0 +1,82 @@
+"""Values checked where they are used: a bad traced value is an error under `jit`, never
+a NaN or black image; the same values are a `ValueError` eagerly."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlens as jl
+
+SKY = jl.GaussianStar(math.radians(2.0), 1.0) + jl.Uniform(0.1)
+
+
+def _image(distance=20.0, fov=1.0, *, r_in=3.0, r_out=12.0, motion=None):
+    cam = jl.Camera(distance, fov, 6, 4)
+    disk = None if r_in is None else jl.Disk(r_in, r_out, 1.2)
+    return jl.render_array(jl.Scene(cam, SKY, motion=motion, disk=disk))
+
+
+_jitted = eqx.filter_jit(_image)
+
+
+def test_good_values_render_under_jit():
+    img = np.asarray(_jitted(jnp.asarray(20.0), jnp.asarray(1.0), r_in=jnp.asarray(3.0)))
+    assert img.shape == (4, 6, 3) and np.all(np.isfinite(img)) and img.max() > 0
+
+
+@pytest.mark.parametrize("distance", [0.5, 1.0, -3.0, math.nan, math.inf])
+def test_bad_distance_raises_under_jit(distance):
+    with pytest.raises(Exception, match="camera distance must be finite and > 1"):
+        jax.block_until_ready(_jitted(jnp.asarray(distance), jnp.asarray(1.0), r_in=None))
+
+
+@pytest.mark.parametrize("fov", [0.0, -0.2, math.pi, 4.0, math.nan])
+def test_bad_field_of_view_raises_under_jit(fov):
+    with pytest.raises(Exception, match=r"field of view must be in \(0, pi\)"):
+        jax.block_until_ready(_jitted(jnp.asarray(20.0), jnp.asarray(fov), r_in=None))
+
+
+@pytest.mark.parametrize(
+    "r_in,r_out", [(1.2, 12.0), (1.5, 12.0), (12.0, 12.0), (14.0, 12.0), (3.0, math.inf)]
+)
+def test_bad_disk_radii_raise_under_jit(r_in, r_out):
+    # The disk is built from traced radii (its eager check cannot see them).
+    f = eqx.filter_jit(lambda a, b: _image(r_in=a, r_out=b))
+    with pytest.raises(Exception, match="disk radii must satisfy 1.5 < r_in < r_out"):
+        jax.block_until_ready(f(jnp.asarray(r_in), jnp.asarray(r_out)))
+
+
+def test_orbit_inside_the_photon_sphere_raises_under_jit():
+    f = eqx.filter_jit(lambda d: _image(d, r_in=None, motion=jl.CircularOrbit(0.0)))
+    assert np.all(np.isfinite(np.asarray(f(jnp.asarray(5.0)))))
+    with pytest.raises(Exception, match="circular orbit needs distance > 1.5"):
+        jax.block_until_ready(f(jnp.asarray(1.4)))
+
+
+def test_the_same_values_are_value_errors_eagerly():
+    with pytest.raises(ValueError, match="distance"):
+        jl.Camera(0.5, 1.0, 6, 4)
+    with pytest.raises(ValueError, match="field of view"):
+        jl.Camera(20.0, 4.0, 6, 4)
+    with pytest.raises(ValueError, match="r_in"):
+        jl.Disk(1.2, 12.0, 1.0)
+    with pytest.raises(ValueError, match="D > 1.5"):
+        jl.Scene(jl.Camera(1.4, 1.0, 6, 4), SKY, motion=jl.CircularOrbit())
+
+
+def test_trace_checks_its_distance_under_jit():
+    f = jax.jit(lambda d: jl.trace(jnp.asarray([0.5, 1.0]), d).phi)
+    assert np.all(np.isfinite(np.asarray(f(10.0))))
+    with pytest.raises(Exception, match="distance must be finite and > 1"):
+        jax.block_until_ready(f(0.9))
+
+
+def test_the_issue_reproduction_now_raises():
+    # jax.jit of a render at a traced distance inside the horizon gave 48 NaN pixels.
+    f = jax.jit(lambda d: jl.render_array(jl.Camera(d, 1.0, 4, 4), SKY))
+    with pytest.raises(Exception, match="camera distance must be finite and > 1"):
+        jax.block_until_ready(f(0.5))
