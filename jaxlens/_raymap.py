@@ -71,6 +71,8 @@ class RayMap(eqx.Module):
         knots: int | None = None,
         max_windings: float = 10.0,
         captured: bool = False,
+        alpha_max: float = math.pi,
+        exact_slopes: bool = True,
     ) -> "RayMap":
         """Tabulate Phi(alpha) for a camera at `distance` (units of R_S, scalar).
 
@@ -81,6 +83,15 @@ class RayMap(eqx.Module):
         - `max_windings`: rays sweeping more than $2\\pi\\times$ this are unresolved.
         - `captured`: also tabulate the captured side (the azimuth at which a
           captured ray crosses the horizon), as `trace` reports it.
+        - `alpha_max`: the largest local angle tabulated (radians; $\\pi$: every ray; a
+          pinhole camera sees no ray beyond $\\pi/2$). Beyond it the table is not
+          meaningful.
+        - `exact_slopes`: knot slopes by forward-mode autodiff of the closed form (the
+          default), or (`False`) by fourth-order differences of the knot values. The
+          latter's interpolation error is of the same order in the knot spacing, and
+          its derivative with respect to the distance needs only first derivatives of
+          the closed form: a program that differentiates the table (a fit) compiles
+          several times faster.
         """
         d = jnp.asarray(distance, jnp.result_type(float, distance))
         if d.ndim != 0:
@@ -90,8 +101,10 @@ class RayMap(eqx.Module):
             # The span is at most ~ln(pi / (alpha_sh 1e-13)); alpha_sh >= b_c/D.
             span_bound = 30.0 + 2.0 * math.log(10.0) + 25.0
             knots = knots_for(accuracy, span_bound)
-        outer = _tabulate(d, alpha_sh, jnp.pi - alpha_sh, +1.0, knots)
-        inner = _tabulate(d, alpha_sh, alpha_sh, -1.0, knots) if captured else None
+        if not 0.0 < alpha_max <= math.pi:
+            raise ValueError(f"alpha_max={alpha_max!r} must be in (0, pi] radians")
+        outer = _tabulate(d, alpha_sh, alpha_max - alpha_sh, +1.0, knots, exact_slopes)
+        inner = _tabulate(d, alpha_sh, alpha_sh, -1.0, knots, exact_slopes) if captured else None
         peri = None
         if captured:  # trace()'s full result: also 1/r_min of the escaping side
             gap = jnp.exp(outer[0])
@@ -178,7 +191,7 @@ class RayMap(eqx.Module):
         return TraceResult(phi, status.astype(jnp.int8), r_min.astype(phi.dtype))
 
 
-def _tabulate(d, alpha_sh, span, sign, n):
+def _tabulate(d, alpha_sh, span, sign, n, exact_slopes=True):
     # Knots uniform in tau = ln|alpha - alpha_sh| from 1e-13 alpha_sh to `span` (the
     # last knot a hair short, where |sin(alpha)| has its kink at alpha = 0 or pi).
     floor = 1e-300 if d.dtype == jnp.float64 else 1e-37
@@ -190,9 +203,27 @@ def _tabulate(d, alpha_sh, span, sign, n):
     def phi_of_alpha(a):
         return _exact.escape_angle(a, d, iterations=8, max_windings=1e6)[0]
 
-    # d phi / d tau = (d phi / d alpha) d alpha / d tau: one forward-mode pass.
-    phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + sign * gap,), (sign * gap,))
-    return tau_lo + dtau * jnp.arange(n, dtype=d.dtype), dtau, phi, slope
+    knots = tau_lo + dtau * jnp.arange(n, dtype=d.dtype)
+    if exact_slopes:
+        # d phi / d tau = (d phi / d alpha) d alpha / d tau: one forward-mode pass.
+        phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + sign * gap,), (sign * gap,))
+    else:
+        phi = phi_of_alpha(alpha_sh + sign * gap)
+        slope = _difference_slopes(phi, dtau)
+    return knots, dtau, phi, slope
+
+
+def _difference_slopes(phi, dtau):
+    """$d\\phi/d\\tau$ at uniform knots from their values: fourth-order differences,
+    central inside and one-sided at the two knots of each end."""
+    h12 = 12.0 * dtau
+    inside = (phi[:-4] - 8.0 * phi[1:-3] + 8.0 * phi[3:-1] - phi[4:]) / h12
+    p, q = phi[:5], phi[-5:][::-1]  # the ends, outward first
+    first = (-25.0 * p[0] + 48.0 * p[1] - 36.0 * p[2] + 16.0 * p[3] - 3.0 * p[4]) / h12
+    second = (-3.0 * p[0] - 10.0 * p[1] + 18.0 * p[2] - 6.0 * p[3] + p[4]) / h12
+    last = -(-25.0 * q[0] + 48.0 * q[1] - 36.0 * q[2] + 16.0 * q[3] - 3.0 * q[4]) / h12
+    before = -(-3.0 * q[0] - 10.0 * q[1] + 18.0 * q[2] - 6.0 * q[3] + q[4]) / h12
+    return jnp.concatenate([jnp.stack([first, second]), inside, jnp.stack([before, last])])
 
 
 def hermite(t, p0, p1, m0, m1):
