@@ -33,7 +33,7 @@ def fit_ring(
 ) -> RingFit:
     """Fit the camera distance and field of view to an image of an Einstein ring.
 
-    The observation model is that of the module docstring; the fit runs in float64
+    The observation model is that of the `jaxlens._fit` package docstring; the fit runs in float64
     whatever the global precision. Starting values come from the radial profile about
     the image centre (ring radius and width) mapped through the exact ring relation
     $\\alpha_E(D)$ onto a grid of distances whose losses are compared on a binned
@@ -94,7 +94,7 @@ def fit_ring(
         extra = np.full((3, 3), np.nan)
         extra[:, 1] = 1.0
         if init is not None:
-            # A start of the user's: its own candidates only (the grid rows are skipped).
+            # Starting values in `init`: their own candidates only (the grid rows are skipped).
             given = _from_init(init, prof, w, star_sigma)
             extra[: len(given)] = given
             cands[:, 0] = np.nan

@@ -211,7 +211,7 @@ def _ring_candidates(prof: _Profile, width: int, sigma):
 
 
 def _from_init(init, prof: _Profile, width: int, sigma):
-    """Candidates from a user's starting values: as given, and moved along one
+    """Candidates from the starting values `init`: as given, and moved along one
     parameter onto the measured ring radius (ring relation interpolated in the table)."""
     try:
         d0 = float(init["distance"])
