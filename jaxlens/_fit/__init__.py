@@ -1,0 +1,34 @@
+"""Fit the black hole to an observed Einstein ring: autodiff of a forward model, optimistix.
+
+The observation model: a static pinhole camera at distance $D$ (units of R_S) looks
+straight at the hole with horizontal field of view FOV; one star sits exactly behind
+the hole at infinity, Gaussian in angular distance $d$ on the sky,
+$I = A e^{-d^2 / 2\\sigma^2}$; a uniform sky level `floor` lies behind everything;
+captured rays are 0; pixels are area-averaged; the noise is additive.
+
+The model image is radially symmetric, so each area sample needs only its local angle
+$\\alpha$: the escape angle comes from an `EscapeTable` of the distance (differentiable
+with respect to $D$), the angular distance from the source is
+$|(\\Phi \\bmod 2\\pi) - \\pi|$, and samples that straddle the shadow edge are weighted
+by the exact fraction of their square footprint outside the (locally straight) edge, so
+the edge contributes gradient with respect to $D$ and FOV. `optimistix.least_squares`
+with Levenberg-Marquardt then solves for $\\log(D - 1.5)$,
+$\\operatorname{logit}(\\mathrm{FOV}/\\pi)$, $\\log\\sigma$, $A$, the floor and the
+relativistic rings' flux factor; standard errors come from the Gauss-Newton curvature
+$J^T J$ and the residual variance.
+"""
+
+from .model import ring_image as ring_image
+from .noise import clipped_mean as clipped_mean
+from .pixels import read_observation as read_observation
+from .result import RingFit as RingFit
+from .ring import fit_ring as fit_ring
+from .table import EscapeTable as EscapeTable, einstein_ring_angle as einstein_ring_angle
+from .units import (
+    C_LIGHT as C_LIGHT,
+    GM_SUN as GM_SUN,
+    RS_SUN_M as RS_SUN_M,
+    distance_in_metres as distance_in_metres,
+    mass_from_distance as mass_from_distance,
+    schwarzschild_radius_m as schwarzschild_radius_m,
+)

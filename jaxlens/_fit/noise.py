@@ -1,0 +1,88 @@
+"""Noise: the expected value of a clipped noisy pixel (integer images store values
+clipped to [0, 1]) and its slope, and the per-pixel noise level of an image."""
+
+import math
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+if TYPE_CHECKING:
+    from .starts import _Profile
+
+
+def _positive_part(u, s):
+    """$E[(u + n)_+]$ for $n \\sim N(0, s^2)$: $u\\,\\Phi(u/s) + s\\,\\varphi(u/s)$."""
+    z = u / s
+    return u * jax.scipy.special.ndtr(z) + s * jnp.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+
+
+def clipped_mean(m, lo, hi, noise):
+    """Expected value of `clip(m + n, lo, hi)` with Gaussian noise $n$ of standard
+    deviation `noise`: what an integer image stores where the noise crosses 0 or 1.
+
+    $E = m + E[(lo - m - n)_+] - E[(m + n - hi)_+]$; `lo = -inf`, `hi = inf` give `m`.
+    Broadcasts; works under `jit`, `vmap` and `grad`.
+
+    **Arguments:** `m`: the noise-free pixel value; `lo`, `hi`: the stored range (0 and
+    1 for an integer image normalised to [0, 1]); `noise`: the noise's standard
+    deviation, in the units of `m`.
+
+    **Returns:** the expected stored value, in the units of `m`.
+    """
+    s = jnp.maximum(noise, 1e-30)
+    low = jnp.where(
+        jnp.isfinite(lo), _positive_part(jnp.where(jnp.isfinite(lo), lo, 0.0) - m, s), 0.0
+    )
+    high = jnp.where(
+        jnp.isfinite(hi), _positive_part(m - jnp.where(jnp.isfinite(hi), hi, 0.0), s), 0.0
+    )
+    return m + low - high
+
+
+def clipped_slope(m, lo, hi, noise):
+    """Derivative of `clipped_mean` with respect to `m`:
+    $1 - \\Phi((lo - m)/s) - \\Phi((m - hi)/s)$."""
+    s = jnp.maximum(noise, 1e-30)
+    low = jnp.where(jnp.isfinite(lo), jax.scipy.special.ndtr((jnp.nan_to_num(lo) - m) / s), 0.0)
+    high = jnp.where(jnp.isfinite(hi), jax.scipy.special.ndtr((m - jnp.nan_to_num(hi)) / s), 0.0)
+    return 1.0 - low - high
+
+
+def _noise_level(img):
+    """Per-pixel noise from the median absolute second difference (robust to the ring)."""
+    d = img[:, 2:] - 2.0 * img[:, 1:-1] + img[:, :-2]
+    if d.size < 8:
+        return float(np.std(img))
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(6.0))
+
+
+def _clipping(img):
+    """Bounds at which the stored values were clipped: 0 (1) when at least 0.2 % of the
+    pixels sit exactly there, else -inf (inf)."""
+    lo = 0.0 if img.min() == 0.0 and np.mean(img == 0.0) > 2e-3 else -math.inf
+    hi = 1.0 if img.max() == 1.0 and np.mean(img == 1.0) > 2e-3 else math.inf
+    return lo, hi
+
+
+def _noise_clipped(img, prof: "_Profile", lo, hi) -> float:
+    """Per-pixel noise. Unclipped images: the robust second-difference estimate. Clipped
+    ones: from the sky well outside the ring (flat there), as the 84th minus the 50th
+    percentile, which clipping below the median leaves intact; inside the shadow (flat
+    at 0) when the sky outside is too small."""
+    if not (math.isfinite(lo) or math.isfinite(hi)):
+        return prof.noise
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    rho = np.hypot(xx + 0.5 - 0.5 * w, 0.5 * h - (yy + 0.5))
+    for region in (
+        rho > prof.ring_radius + 8.0 * prof.ring_width + 3.0,
+        rho < 0.5 * np.nan_to_num(prof.inner_half, nan=0.0),
+    ):
+        v = img[region]
+        if v.size >= 200:
+            q50, q84 = np.percentile(v, [50.0, 84.13])
+            if q84 > q50 and q50 < hi:
+                return float(q84 - q50)
+    return prof.noise

@@ -1,0 +1,126 @@
+"""The observed pixels (host-side numpy): reading an observation, checking and binning
+it, and choosing the pixels a fit compares."""
+
+import math
+from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+
+from .._io import read_pixels
+from .model import _pixel_edges
+
+
+def read_observation(path) -> np.ndarray:
+    """Read an image file as the observation model reads it: pixel values as stored
+    (integer formats normalised to [0, 1]), no colour-space decoding, the colour
+    channels averaged (an alpha channel, as OpenImageIO identifies it, is left out).
+
+    `read_image` decodes sRGB-tagged 8/16-bit files (every PNG) to linear light; the
+    fit's contract takes the stored values as linear intensity, so it reads here.
+
+    **Returns:** float64 `(H, W)`; raises `ValueError` naming the file when it is
+    missing, empty, not an image or unreadable.
+    """
+    data, info = read_pixels(path)
+    data, alpha = np.asarray(data, np.float64), info["alpha"]
+    colour = [i for i in range(data.shape[-1]) if i != alpha] or [0]
+    return data[..., colour].mean(axis=-1)
+
+
+def _as_gray(image) -> np.ndarray:
+    if isinstance(image, (str, Path)):
+        image = read_observation(image)
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim == 3:
+        img = img.mean(axis=-1)
+    if img.ndim != 2:
+        raise ValueError(f"image of shape {np.shape(image)} is not (H, W) or (H, W, C)")
+    if min(img.shape) < 8:
+        raise ValueError(f"image of {img.shape[1]}x{img.shape[0]} pixels is too small to fit")
+    if not np.all(np.isfinite(img)):
+        raise ValueError("image has NaN or infinite pixels")
+    span = float(img.max() - img.min())
+    if span <= 1e-12 * max(1.0, abs(float(img.max()))):
+        raise ValueError(
+            f"image is blank (every pixel is {float(img.flat[0]):.6g}): no ring to fit"
+        )
+    return img
+
+
+def _bin(img, block):
+    h, w = img.shape
+    hb, wb = h // block, w // block
+    r0, c0 = (h - hb * block) // 2, (w - wb * block) // 2
+    crop = img[r0 : r0 + hb * block, c0 : c0 + wb * block]
+    return crop.reshape(hb, block, wb, block).mean(axis=(1, 3))
+
+
+class _PixelSets(eqx.Module):
+    """The pixels a fit compares (host-side numpy): `fine` edges (x0, y0) of pixels of
+    side `block`, `coarse_edges` of blocks of side `coarse` (empty when `coarse` = 0),
+    their stored values `data` (fine, then coarse) and weights (the side of each)."""
+
+    fine: tuple
+    coarse_edges: tuple
+    data: np.ndarray
+    weight: np.ndarray
+    block: int
+    coarse: int
+
+
+def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None) -> _PixelSets:
+    """Full resolution (or bins of `block`, the finest the ring allows) on the shadow
+    edge and the ring; where the image is flat (inside the shadow, the far sky) blocks
+    q times larger, q the smallest factor that brings the count to `max_pixels`.
+
+    Fine bins: side `block` (default 1, or up to half the ring's radial width when the
+    image is still too large). The bands at full resolution: the ring radius +- 6 ring
+    widths and the shadow edge (from the starting distance and, when seen, the profile)
+    +- 3 pixels, each widened by a coarse block's diagonal.
+    """
+    h, w = img.shape
+    if block is None:
+        block = 1
+        while (h // block) * (w // block) > 4 * max_pixels and 2 * (block + 1) <= prof.ring_width:
+            block += 1
+    block = int(block)
+    fine_all = _bin(img, block)
+    hf, wf = fine_all.shape
+    if hf * wf <= max_pixels:
+        x0, y0 = (np.asarray(v).ravel() for v in _pixel_edges(w, h, block, np.float64))
+        empty = (np.zeros(0), np.zeros(0))
+        return _PixelSets((x0, y0), empty, fine_all.ravel(), np.full(x0.size, block), block, 0)
+    ring_lo = prof.ring_radius - 6.0 * prof.ring_width - 3.0
+    ring_hi = prof.ring_radius + 6.0 * prof.ring_width + 3.0
+    edges = [r for r in (rho_sh, prof.shadow_radius) if math.isfinite(r)]
+    for q in range(2, max(hf, wf) + 1):
+        big = block * q
+        hb, wb = h // big, w // big
+        if hb < 2 or wb < 2:
+            break
+        bx, by = (np.asarray(v) for v in _pixel_edges(w, h, big, np.float64))
+        rc = np.hypot(bx + 0.5 * big, by - 0.5 * big)
+        half = big / math.sqrt(2.0)
+        lo_r, hi_r = rc - half, rc + half
+        sel = (hi_r > ring_lo) & (lo_r < ring_hi)
+        for e in edges:
+            sel |= (hi_r > e - 3.0) & (lo_r < e + 3.0)
+        n = int(sel.sum()) * q * q + int((~sel).sum())
+        if n <= max_pixels or q * block >= min(h, w) // 4:
+            break
+    # The fine pixels of the selected blocks, and the coarse blocks elsewhere.
+    crop_r0, crop_c0 = (h - hb * big) // 2, (w - wb * big) // 2
+    sub = np.arange(q) * block
+    fx = (bx[sel][:, None, None] + sub[None, None, :]).repeat(q, axis=1).ravel()
+    fy = (by[sel][:, None, None] - sub[None, :, None]).repeat(q, axis=2).ravel()
+    cols = np.round(fx + 0.5 * w).astype(int)
+    rows = np.round(0.5 * h - fy).astype(int)
+    fine = img[
+        rows[:, None, None] + np.arange(block)[None, :, None],
+        cols[:, None, None] + np.arange(block)[None, None, :],
+    ].mean(axis=(1, 2))
+    coarse = _bin(img[crop_r0 : crop_r0 + hb * big, crop_c0 : crop_c0 + wb * big], big)
+    data = np.concatenate([fine, coarse[~sel]])
+    weight = np.concatenate([np.full(fine.size, block), np.full(int((~sel).sum()), big)])
+    return _PixelSets((fx, fy), (bx[~sel], by[~sel]), data, weight.astype(float), block, big)

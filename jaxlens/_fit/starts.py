@@ -1,0 +1,238 @@
+"""Starting values: the radial profile of the image, the table of the exact ring
+relation, candidates along it (or from `init`) and their profile losses on a binned
+image."""
+
+import functools
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .model import _pixel_basis
+from .noise import _noise_level, clipped_mean, clipped_slope
+from .solve import _Setup
+from .table import EscapeTable
+
+
+@functools.cache
+def _ring_table():
+    """$\\alpha_E$, $\\alpha_{sh}$ and $d\\Phi/d\\alpha$ at $\\alpha_E$ on a grid of camera
+    distances $1.9 \\dots 10^5$, for the starting values (numpy, once a process)."""
+    with jax.enable_x64(True):
+        d = np.geomspace(1.9, 1e5, 49)
+
+        @jax.jit
+        @jax.vmap
+        def one(d):
+            table = EscapeTable.build(d, knots=2048)
+            a, slope = table.solve(jnp.pi)
+            ok = table.escape_angle(0.5 * jnp.pi) < jnp.pi
+            return jnp.where(ok, a, jnp.nan), table.alpha_sh, slope
+
+        a, sh, slope = (np.asarray(v) for v in one(jnp.asarray(d)))
+    ok = np.isfinite(a) & (a < math.radians(88.0))
+    return d[ok], a[ok], sh[ok], slope[ok]
+
+
+_PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each candidate
+
+
+@eqx.filter_jit
+def _candidate_losses(cands, halves, args, setup: _Setup):
+    r"""Profile loss of each candidate distance.
+
+    For each (D, fov, sigma) the distance is held fixed while a few Gauss-Newton steps
+    (A and floor linear, steps on log focal length and log sigma clipped) fit the rest:
+    candidates along the ring relation then differ by what D alone changes, not by the
+    sub-pixel error of the measured ring radius. A NaN sigma is first taken from the
+    half-maximum radii `halves` (inner, outer, pixels; inner NaN when the ring runs
+    into the shadow): the Gaussian in $|\Phi - \pi|$ is at half its peak where
+    $|\Phi - \pi| = \sqrt{2 \ln 2}\,\sigma$.
+
+    **Returns:** loss, fov, sigma, A and floor of each candidate.
+    """
+    x0, y0, data, scale, clip = args
+    y = (data / scale).ravel()
+    lo, hi, noise = clip[0], clip[1], clip[2]
+    hwhm = math.sqrt(2.0 * math.log(2.0))
+
+    def one(c):
+        d, fov = c[0], c[1]
+        table = EscapeTable.build(d, knots=setup.knots)
+        focal = setup.half_width / jnp.tan(0.5 * fov)
+        phi_in = table.escape_angle(jnp.arctan(jnp.nan_to_num(halves[0], nan=1.0) / focal))
+        phi_out = table.escape_angle(jnp.arctan(halves[1] / focal))
+        width = jnp.where(
+            jnp.isnan(halves[0]), (jnp.pi - phi_out) / hwhm, 0.5 * (phi_in - phi_out) / hwhm
+        )
+        sigma = jnp.where(jnp.isnan(c[2]), jnp.clip(width, 1e-5, 0.5), c[2])
+        q0 = jnp.stack([jnp.log(focal), jnp.log(sigma)][: 2 if setup.fit_sigma else 1])
+
+        def basis(q):
+            s_ = jnp.exp(q[1]) if setup.fit_sigma else sigma
+            g, t, cov = _pixel_basis(table, jnp.exp(q[0]), s_, x0, y0, block=setup.block, k=setup.k)
+            g, cov = (g + t).ravel(), cov.ravel()
+            return g, (g, cov)
+
+        # A and floor by linear least squares, then Gauss-Newton on all four (through
+        # the expected clipped value where the stored values were clipped).
+        g, (_, cov) = basis(q0)
+        xm = jnp.stack([g, cov], axis=1)
+        mm = xm.T @ xm
+        a0, f0 = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), xm.T @ y)
+
+        def step(carry, _):
+            q, a, fl = carry
+            jg, (g, cov) = jax.jacfwd(basis, has_aux=True)(q)
+            m = a * g + fl * cov
+            res = y - clipped_mean(m, lo, hi, noise)
+            x = clipped_slope(m, lo, hi, noise)[:, None] * jnp.concatenate(
+                [g[:, None], cov[:, None], a * jg], axis=1
+            )
+            mm = x.T @ x
+            delta = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), x.T @ res)
+            delta = jnp.nan_to_num(delta)
+            limit = jnp.asarray([0.05, 0.3][: q.shape[0]], q.dtype)
+            q = q + jnp.clip(delta[2:], -limit, limit)
+            return (q, a + delta[0], fl + delta[1]), jnp.sum(res**2)
+
+        (q, a, fl), rss = jax.lax.scan(step, (q0, a0, f0), None, length=_PROFILE_STEPS)
+        f = jnp.exp(q[0])
+        fov = 2.0 * jnp.arctan(setup.half_width / f)
+        s_ = jnp.exp(q[1]) if setup.fit_sigma else sigma
+        loss = jnp.where(jnp.isfinite(rss[-1]), rss[-1], jnp.inf)
+        return loss, fov, s_, a * scale, fl * scale
+
+    def skip(c):  # rows with D = NaN are placeholders: not evaluated
+        inf = jnp.asarray(jnp.inf, y.dtype)
+        return inf, c[1], jnp.nan_to_num(c[2], nan=1.0), inf, inf
+
+    return jax.lax.map(lambda c: jax.lax.cond(jnp.isfinite(c[0]), one, skip, c), cands)
+
+
+class _Profile(eqx.Module):
+    """What the radial profile about the image centre shows (pixels, data units)."""
+
+    ring_radius: float
+    ring_width: float  # radial Gaussian sigma of the ring, pixels
+    inner_half: float  # radius of half maximum inside the ring (nan: cut by the shadow)
+    outer_half: float  # radius of half maximum outside the ring
+    peak: float  # ring peak above the floor
+    peak_noise: float  # noise of the profile at the peak (the mean of its pixels)
+    floor: float
+    noise: float  # per-pixel noise, robust estimate
+    shadow_radius: float  # nan when no dark disc against a floor is seen
+
+
+def _profile(img) -> _Profile:
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    rho = np.hypot(xx + 0.5 - 0.5 * w, 0.5 * h - (yy + 0.5))
+    dr = 0.5
+    idx = np.floor(rho / dr).astype(int).ravel()
+    cnt = np.bincount(idx)
+    tot = np.bincount(idx, weights=img.ravel())
+    ok = cnt > 0
+    r_mid = (np.arange(cnt.size) + 0.5) * dr
+    prof = np.interp(r_mid, r_mid[ok], tot[ok] / np.maximum(cnt[ok], 1))
+    smooth = np.convolve(prof, np.ones(3) / 3.0, mode="same")
+    smooth[0], smooth[-1] = prof[0], prof[-1]
+    noise = _noise_level(img)
+    i_pk = int(np.argmax(smooth[1:-1])) + 1 if smooth.size > 2 else int(np.argmax(smooth))
+    # Sub-bin peak position (parabola through the three bins about the maximum).
+    if 0 < i_pk < smooth.size - 1:
+        a, b, c = smooth[i_pk - 1 : i_pk + 2]
+        den = a - 2 * b + c
+        shift = 0.5 * (a - c) / den if den < 0 else 0.0
+        ring_radius = float(r_mid[i_pk] + np.clip(shift, -1, 1) * dr)
+    else:
+        ring_radius = float(r_mid[i_pk])
+    outside = smooth[i_pk:]
+    floor = float(np.min(outside)) if outside.size else 0.0
+    peak = float(smooth[i_pk] - floor)
+    half = floor + 0.5 * peak
+    # Half-maximum radii, interpolated between bins and corrected for the blur of the
+    # pixels, the bins and the smoothing (variance 1/12 + dr^2/12 + 2 dr^2/3 pixels^2).
+    blur = 1.0 / 12.0 + dr**2 / 12.0 + 2.0 * dr**2 / 3.0
+    j = i_pk
+    while j + 1 < smooth.size and smooth[j] > half:
+        j += 1
+    f = (smooth[j - 1] - half) / max(smooth[j - 1] - smooth[j], 1e-300)
+    outer = max(r_mid[j - 1] + np.clip(f, 0, 1) * dr - ring_radius, 0.25)
+    j = i_pk
+    while j > 0 and smooth[j] > half:
+        j -= 1
+    if j == 0 or prof[j] < 0.25 * peak + 0.5 * floor and prof[max(j - 1, 0)] < 0.5 * floor:
+        inner = float("nan")  # the ring runs into the shadow (or the centre)
+    else:
+        f = (smooth[j + 1] - half) / max(smooth[j + 1] - smooth[j], 1e-300)
+        inner = max(ring_radius - (r_mid[j + 1] - np.clip(f, 0, 1) * dr), 0.25)
+
+    def unblur(hw):
+        return 1.1774 * math.sqrt(max((hw / 1.1774) ** 2 - blur, 0.04))
+
+    outer = unblur(outer)
+    inner = unblur(inner) if math.isfinite(inner) else inner
+    hw = outer if not math.isfinite(inner) else 0.5 * (outer + inner)
+    ring_width = hw / 1.1774
+    # The dark disc: the profile is ~0 at the centre and jumps to the floor at the edge.
+    shadow_radius = float("nan")
+    if floor > 5.0 * noise and prof[0] < 0.5 * floor:
+        above = np.nonzero(prof[: i_pk + 1] > 0.5 * floor)[0]
+        if above.size:
+            shadow_radius = float(r_mid[above[0]] - 0.5 * dr)
+    n_peak = float(cnt[max(i_pk - 1, 0) : i_pk + 2].sum())
+    return _Profile(
+        ring_radius,
+        ring_width,
+        ring_radius - inner,
+        ring_radius + outer,
+        peak,
+        noise / math.sqrt(max(n_peak, 1.0)),
+        floor,
+        noise,
+        shadow_radius,
+    )
+
+
+def _ring_candidates(prof: _Profile, width: int, sigma):
+    """(D, fov, sigma) along the exact ring relation: for each D of the table, the FOV
+    that puts the ring at the measured radius; sigma is the known one, or NaN for the
+    candidate program to take from the half-maximum radii."""
+    d, a_e, _, _ = _ring_table()
+    focal = prof.ring_radius / np.tan(a_e)
+    fov = 2.0 * np.arctan(0.5 * width / focal)
+    sig = np.full_like(d, np.nan if sigma is None else sigma)
+    ok = (fov > math.radians(0.05)) & (fov < math.radians(179.0))
+    # Invalid rows are kept with D = NaN (infinite loss): one candidate count, one program.
+    return np.stack([np.where(ok, d, np.nan), np.where(ok, fov, 1.0), sig], -1)
+
+
+def _from_init(init, prof: _Profile, width: int, sigma):
+    """Candidates from the starting values `init`: as given, and moved along one
+    parameter onto the measured ring radius (ring relation interpolated in the table)."""
+    try:
+        d0 = float(init["distance"])
+        fov0 = float(init["fov"]) if "fov" in init else math.radians(float(init["fov_deg"]))
+    except (KeyError, TypeError) as e:
+        raise ValueError(
+            f"init={init!r} must be a dict with 'distance' (R_S) and 'fov' (radians) or 'fov_deg'"
+        ) from e
+    s0 = sigma if sigma is not None else init.get("sigma", np.nan)
+    d, a_e, _, _ = _ring_table()
+    if not (d[0] <= d0 <= d[-1]) or not (0 < fov0 < math.pi):
+        raise ValueError(
+            f"init distance={d0!r} R_S must be in [{d[0]:.3g}, {d[-1]:.3g}] and fov={fov0!r} "
+            "radians in (0, pi)"
+        )
+    ld = np.log(d)
+    focal0 = 0.5 * width / math.tan(0.5 * fov0)
+    a0 = float(np.interp(math.log(d0), ld, a_e))
+    focal1 = prof.ring_radius / math.tan(a0)
+    out = [(d0, fov0, s0), (d0, 2.0 * math.atan(0.5 * width / focal1), s0)]
+    target = math.atan(prof.ring_radius / focal0)
+    if a_e.min() < target < a_e.max():
+        out.append((float(np.exp(np.interp(-target, -a_e, ld))), fov0, s0))
+    return np.asarray(out, float)
