@@ -82,7 +82,6 @@ from ._effects import (
 )
 from ._fit import (
     RS_SUN_M as RS_SUN_M,
-    EscapeTable as EscapeTable,
     RingFit as RingFit,
     clipped_mean as clipped_mean,
     distance_in_metres as distance_in_metres,

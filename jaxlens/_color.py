@@ -79,8 +79,8 @@ def _build_table():
 _TABLE = _build_table()
 _DLOG_T = (_LOG_T1 - _LOG_T0) / (_NT - 1)
 # End slopes of ln Y in ln T, for linear extrapolation beyond the table.
-_SLOPE_LO = (_TABLE[1, 0] - _TABLE[0, 0]) / _DLOG_T
-_SLOPE_HI = (_TABLE[-1, 0] - _TABLE[-2, 0]) / _DLOG_T
+_SLOPE_LO = float((_TABLE[1, 0] - _TABLE[0, 0]) / _DLOG_T)  # Python floats: weak types
+_SLOPE_HI = float((_TABLE[-1, 0] - _TABLE[-2, 0]) / _DLOG_T)
 
 
 def _lookup(log_t):

@@ -29,7 +29,7 @@ stop = 3.0
 fps = 12.0
 
 [[sky]]                    # layers, summed; without any: "default" plus a "star"
-type = "star"              # each sky type registers its keys (see docs/scene-files.md)
+type = "star"              # each sky type registers its keys (docs/rendering.md)
 sigma_deg = 1.0
 
 [effects]
@@ -46,7 +46,8 @@ inclination_deg = 80.0
 ```
 
 Each table type (a sky layer, a motion, the redshift, the disk) registers its own keys
-beside its class (`_schema.register`); this module reads the file and assembles them.
+beside its class (`_schema.register`; `docs/effects.md` and `docs/rendering.md` list
+the keys); this module reads the file and assembles them.
 """
 
 import dataclasses

@@ -313,7 +313,7 @@ def test_a_user_sky_renders_and_redshifts():
         np.testing.assert_allclose(glow.shifted(n, g, mode), want, rtol=1e-13, atol=1e-300)
     # in a rendered scene: a static camera at D sees g = (1 - 1/D)^-1/2 on every ray
     # that escapes (pixels on the shadow's edge, partly covered, are left out)
-    shifted = jl.render_scene(jl.EffectScene(CAM, glow, redshift=jl.Redshift("bolometric")))
+    shifted = jl.render(jl.Scene(CAM, glow, redshift=jl.Redshift("bolometric")))
     alpha = np.asarray(CAM.rays()[0][..., 0])
     sky = alpha > float(jl.shadow_angle(12.0)) + 0.05
     want = jl.render(CAM, glow)[sky] * (1 - 1 / 12.0) ** -2

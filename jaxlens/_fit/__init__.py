@@ -7,8 +7,8 @@ $I = A e^{-d^2 / 2\\sigma^2}$; a uniform sky level `floor` lies behind everythin
 captured rays are 0; pixels are area-averaged; the noise is additive.
 
 The model image is radially symmetric, so each area sample needs only its local angle
-$\\alpha$: the escape angle comes from an `EscapeTable` of the distance (differentiable
-with respect to $D$), the angular distance from the source is
+$\\alpha$: the escape angle comes from the ray map of the distance (`escape_table`, a
+`RayMap`, differentiable with respect to $D$), the angular distance from the source is
 $|(\\Phi \\bmod 2\\pi) - \\pi|$, and samples that straddle the shadow edge are weighted
 by the exact fraction of their square footprint outside the (locally straight) edge, so
 the edge contributes gradient with respect to $D$ and FOV. `optimistix.least_squares`
@@ -23,7 +23,7 @@ from .noise import clipped_mean as clipped_mean
 from .pixels import read_observation as read_observation
 from .result import RingFit as RingFit
 from .ring import fit_ring as fit_ring
-from .table import EscapeTable as EscapeTable, einstein_ring_angle as einstein_ring_angle
+from .table import einstein_ring_angle as einstein_ring_angle, escape_table as escape_table
 from .units import (
     C_LIGHT as C_LIGHT,
     GM_SUN as GM_SUN,

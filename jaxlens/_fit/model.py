@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .table import EscapeTable
+from .table import escape_table, solve_with_slope
 
 
 def _trapezoid(a, c):
@@ -70,7 +70,7 @@ def _thin_rings(table, focal, sigma):
     targets = jnp.asarray([(2 * n + 1) * math.pi for n in _THIN_ORDERS], table.phi.dtype)
     # A loop over the orders (not a Python loop): the table enters it once, materialised,
     # instead of XLA duplicating its producer into every gather (3x the compile time).
-    a, slope = jax.lax.map(table.solve, targets)
+    a, slope = jax.lax.map(lambda t: solve_with_slope(table, t), targets)
     radius = focal * jnp.tan(a)
     return radius, math.sqrt(2.0 * math.pi) * sigma * focal / (jnp.cos(a) ** 2 * jnp.abs(slope))
 
@@ -85,7 +85,7 @@ def _pixel_basis(table, focal, sigma, x0, y0, *, block, k, chunk_samples=1 << 16
     of order $\\ge 1$ through the share of each cell their thin rings cross, so all three
     are continuous in $D$ and FOV.
 
-    **Arguments:** `table` (an `EscapeTable` of the distance), `focal` (pixels of the
+    **Arguments:** `table` (the `escape_table` of the distance), `focal` (pixels of the
     full image), `sigma` (radians), `x0`, `y0`: left and top edges of each (binned)
     pixel in full-image pixels from the image centre ($x$ right, $y$ up); `block`: side
     of a pixel in full-image pixels; `k`: the rule's order.
@@ -104,7 +104,7 @@ def _pixel_basis(table, focal, sigma, x0, y0, *, block, k, chunk_samples=1 << 16
     node, weight, centre = (jnp.asarray(v * block, dtype) for v in _quadrature(k))
     w2 = (weight[:, None] * weight[None, :]) / block**2
     rho_sh = focal * jnp.tan(table.alpha_sh)
-    a_edge = table.alpha_sh + jnp.exp(table.tau0)
+    a_edge = table.alpha_sh + jnp.exp(table.tau[0])
     ring_r, ring_f = _thin_rings(table, focal, sigma)
 
     def grid(xb, yb, u):
@@ -183,7 +183,7 @@ def ring_image(
     """
     distance = jnp.asarray(distance, jnp.result_type(float, distance))
     dtype = distance.dtype
-    table = EscapeTable.build(distance)
+    table = escape_table(distance)
     focal = 0.5 * width / jnp.tan(0.5 * jnp.asarray(fov, dtype))
     x0, y0 = _pixel_edges(width, height, 1, dtype)
     g, t, c = _pixel_basis(

@@ -52,7 +52,7 @@ def fit_ring(
     - `block`: bin the image `block` x `block` before the fit (default: the smallest
       factor that leaves at most `max_pixels` pixels, never more than the ring width
       allows).
-    - `knots`: size of the escape-angle table (`EscapeTable`).
+    - `knots`: knots of the escape-angle table (`escape_table`, a `RayMap`).
     - `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings; it stops when a step
       changes no parameter by more than `atol + rtol |theta|` and no residual by more
       than `atol + rtol |r|` (residuals in units of the ring's peak). Default `atol`:

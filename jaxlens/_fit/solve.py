@@ -11,7 +11,7 @@ import optimistix as optx
 
 from .model import _pixel_basis
 from .noise import clipped_mean
-from .table import _D_MIN, EscapeTable
+from .table import _D_MIN, escape_table
 
 
 class _Setup(eqx.Module):
@@ -61,7 +61,7 @@ def _model(theta, args, setup: _Setup):
     """Model pixel values / scale: the fine pixels, then the coarse ones (if any)."""
     (x0, y0), coarse, _, _, fixed_sigma, scale = args[:6]
     d, fov, sigma, a, floor, ring_flux = _unpack(theta, fixed_sigma, scale, setup)
-    table = EscapeTable.build(d, knots=setup.knots)
+    table = escape_table(d, knots=setup.knots)
     focal = setup.half_width / jnp.tan(0.5 * fov)
     g, t, c = _pixel_basis(table, focal, sigma, x0, y0, block=setup.block, k=setup.k)
     if setup.coarse:

@@ -13,7 +13,7 @@ import numpy as np
 from .model import _pixel_basis
 from .noise import _noise_level, clipped_mean, clipped_slope
 from .solve import _Setup
-from .table import EscapeTable
+from .table import escape_table, solve_with_slope
 
 
 @functools.cache
@@ -26,8 +26,8 @@ def _ring_table():
         @jax.jit
         @jax.vmap
         def one(d):
-            table = EscapeTable.build(d, knots=2048)
-            a, slope = table.solve(jnp.pi)
+            table = escape_table(d, knots=2048)
+            a, slope = solve_with_slope(table, jnp.pi)
             ok = table.escape_angle(0.5 * jnp.pi) < jnp.pi
             return jnp.where(ok, a, jnp.nan), table.alpha_sh, slope
 
@@ -60,7 +60,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
 
     def one(c):
         d, fov = c[0], c[1]
-        table = EscapeTable.build(d, knots=setup.knots)
+        table = escape_table(d, knots=setup.knots)
         focal = setup.half_width / jnp.tan(0.5 * fov)
         phi_in = table.escape_angle(jnp.arctan(jnp.nan_to_num(halves[0], nan=1.0) / focal))
         phi_out = table.escape_angle(jnp.arctan(halves[1] / focal))
