@@ -13,6 +13,7 @@ float32 through `astype`), `trace(method="table")` calls it, point images solve 
 lens equation on it (`solve`), and the fit differentiates it with respect to $D$.
 """
 
+import functools
 import math
 
 import equinox as eqx
@@ -28,7 +29,7 @@ from ._util import fusion_barrier
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
 _HERMITE_C = math.pi / 384.0
 _REL_START = 1e-13  # first knot at alpha_sh * (1 + 1e-13): beyond float64 conditioning
-_BISECTIONS = 90  # halvings of the tau bracket in `solve` (span ~60 -> 1e-26)
+_NEWTON = 3  # Newton steps of `solve` on a knot interval's cubic (~1e-6 -> 1e-11 -> 0)
 
 
 def knots_for(accuracy: float, span: float) -> int:
@@ -73,6 +74,7 @@ class RayMap(eqx.Module):
         captured: bool = False,
         alpha_max: float = math.pi,
         exact_slopes: bool = True,
+        iterations: int = 8,
     ) -> "RayMap":
         """Tabulate Phi(alpha) for a camera at `distance` (units of R_S, scalar).
 
@@ -92,6 +94,8 @@ class RayMap(eqx.Module):
           its derivative with respect to the distance needs only first derivatives of
           the closed form: a program that differentiates the table (a fit) compiles
           several times faster.
+        - `iterations`: duplication steps of Carlson's $R_F$ in the closed form at the
+          knots (8: round-off; 6: 3e-14 rad, `trace`'s ladder).
         """
         d = jnp.asarray(distance, jnp.result_type(float, distance))
         if d.ndim != 0:
@@ -103,8 +107,11 @@ class RayMap(eqx.Module):
             knots = knots_for(accuracy, span_bound)
         if not 0.0 < alpha_max <= math.pi:
             raise ValueError(f"alpha_max={alpha_max!r} must be in (0, pi] radians")
-        outer = _tabulate(d, alpha_sh, alpha_max - alpha_sh, +1.0, knots, exact_slopes)
-        inner = _tabulate(d, alpha_sh, alpha_sh, -1.0, knots, exact_slopes) if captured else None
+        tab = functools.partial(
+            _tabulate, n=knots, exact_slopes=exact_slopes, iterations=iterations
+        )
+        outer = tab(d, alpha_sh, alpha_max - alpha_sh, +1.0)
+        inner = tab(d, alpha_sh, alpha_sh, -1.0) if captured else None
         peri = None
         if captured:  # trace()'s full result: also 1/r_min of the escaping side
             gap = jnp.exp(outer[0])
@@ -124,38 +131,68 @@ class RayMap(eqx.Module):
         alpha = jnp.asarray(alpha, self.phi.dtype)
         return _interpolate(alpha - self.alpha_sh, self.tau, self.dtau, self.phi, self.slope)
 
+    def escape_slope(self, alpha: ArrayLike) -> Float[Array, "..."]:
+        """$d\\Phi/d\\alpha$ of the interpolant (per radian) at `alpha`, in closed form:
+        the same as `jax.jvp` of `escape_angle`, with only first derivatives of the
+        table under a further derivative (a fit's Jacobian)."""
+        alpha = jnp.asarray(alpha, self.phi.dtype)
+        gap = alpha - self.alpha_sh
+        return _interpolate(gap, self.tau, self.dtau, self.phi, self.slope, derivative=True)
+
     def astype(self, dtype) -> "RayMap":
         """The same table in `dtype` (e.g. float32 for a float32 render of a table built
         in float64); the knots keep their own positions, so interpolation error stays
         the table's own plus the dtype's rounding of alpha."""
         return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, self)
 
-    def solve(self, target: ArrayLike) -> Float[Array, "..."]:
+    def solve(self, target: ArrayLike, *, with_slope: bool = False):
         """The local angle $\\alpha > \\alpha_{sh}$ (radians) at which the escape angle
-        equals `target` (radians, > 0): the lens equation on the table.
+        equals `target` (radians, > 0, any shape): the lens equation on the table.
 
-        Bisection in $\\tau$ ($\\Phi$ falls monotonically from $+\\infty$ at the shadow
-        edge to 0 at $\\alpha = \\pi$), then one Newton step that carries the
-        derivatives (implicit function theorem): works under `jit`, `vmap`, `grad` and
-        `jacfwd`, with respect to `target` and the table (hence the distance).
+        $\\Phi$ falls monotonically along the knots, so a search finds the knot
+        interval (on values held constant), and Newton steps on that interval's cubic
+        converge from the linear guess (the cubic is nearly linear in $\\tau$: the guess
+        is within ~1e-6, three steps reach round-off). The steps are differentiable in
+        the knot values, so the result carries the derivative of the implicit function
+        with respect to `target` and the table (hence the distance): works under `jit`,
+        `vmap`, `grad` and `jacfwd`.
+
+        **Returns:** $\\alpha$ (radians, the shape of `target`); with `with_slope`, also
+        $d\\Phi/d\\alpha$ there (per radian).
         """
         target = jnp.asarray(target, self.phi.dtype)
         t0 = jax.lax.stop_gradient(target)
-        rm0 = jax.lax.stop_gradient(self)
-        ash = jnp.broadcast_to(rm0.alpha_sh, target.shape)
-        lo = jnp.log(ash * 1e-13)  # Phi(lo) > target: near the edge
-        hi = jnp.log(jnp.pi - ash)  # Phi(hi) = 0 < target
+        fixed = jax.lax.stop_gradient(self.phi)
+        n = fixed.shape[0]
+        # phi[i] >= target > phi[i + 1] (few targets, e.g. a fit's rings: one vector
+        # compare; many: a log n search)
+        if t0.size <= 64:
+            count = jnp.sum(fixed >= t0[..., None], axis=-1)
+        else:
+            count = jnp.searchsorted(-fixed, -t0, side="right")
+        i = jnp.clip(count - 1, 0, n - 2)
+        dtau = self.dtau
+        p0, p1 = self.phi[i], self.phi[i + 1]
+        m0, m1 = self.slope[i] * dtau, self.slope[i + 1] * dtau
 
-        def body(_, bracket):
-            lo, hi = bracket
-            mid = 0.5 * (lo + hi)
-            above = rm0.escape_angle(ash + jnp.exp(mid)) > t0
-            return jnp.where(above, mid, lo), jnp.where(above, hi, mid)
+        def cubic_slope(t):  # d/dt of the interval's Hermite cubic
+            t2 = t * t
+            d = (6.0 * t2 - 6.0 * t) * (p0 - p1) + (3.0 * t2 - 4.0 * t + 1.0) * m0
+            return d + (3.0 * t2 - 2.0 * t) * m1
 
-        lo, hi = jax.lax.fori_loop(0, _BISECTIONS, body, (lo, hi))
-        a0 = jax.lax.stop_gradient(ash + jnp.exp(0.5 * (lo + hi)))
-        phi0, slope = jax.jvp(self.escape_angle, (a0,), (jnp.ones_like(a0),))
-        return a0 - (phi0 - target) / slope
+        t = jax.lax.stop_gradient(jnp.clip((p0 - t0) / (p0 - p1), 0.0, 1.0))
+        for _ in range(_NEWTON):
+            t = t - (hermite(t, p0, p1, m0, m1) - target) / cubic_slope(t)
+        tau = self.tau[0] + (i + t) * dtau
+        # Beyond the first knot: the log law, linear in tau.
+        beyond = t0 > fixed[0]
+        tau = jnp.where(beyond, self.tau[0] + (target - self.phi[0]) / self.slope[0], tau)
+        gap = jnp.exp(tau)
+        alpha = self.alpha_sh + gap
+        if not with_slope:
+            return alpha
+        slope = jnp.where(beyond, self.slope[0], cubic_slope(t) / dtau) / gap
+        return alpha, slope
 
     def horizon_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated azimuth (radians) at which a captured ray ($\\alpha < \\alpha_{sh}$)
@@ -191,7 +228,7 @@ class RayMap(eqx.Module):
         return TraceResult(phi, status.astype(jnp.int8), r_min.astype(phi.dtype))
 
 
-def _tabulate(d, alpha_sh, span, sign, n, exact_slopes=True):
+def _tabulate(d, alpha_sh, span, sign, *, n, exact_slopes, iterations):
     # Knots uniform in tau = ln|alpha - alpha_sh| from 1e-13 alpha_sh to `span` (the
     # last knot a hair short, where |sin(alpha)| has its kink at alpha = 0 or pi).
     floor = 1e-300 if d.dtype == jnp.float64 else 1e-37
@@ -201,14 +238,16 @@ def _tabulate(d, alpha_sh, span, sign, n, exact_slopes=True):
     gap = jnp.exp(tau_lo + dtau * jnp.arange(n, dtype=d.dtype))
 
     def phi_of_alpha(a):
-        return _exact.escape_angle(a, d, iterations=8, max_windings=1e6)[0]
+        return _exact.escape_angle(a, d, iterations=iterations, max_windings=1e6)[0]
 
     knots = tau_lo + dtau * jnp.arange(n, dtype=d.dtype)
     if exact_slopes:
         # d phi / d tau = (d phi / d alpha) d alpha / d tau: one forward-mode pass.
         phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + sign * gap,), (sign * gap,))
     else:
-        phi = phi_of_alpha(alpha_sh + sign * gap)
+        # Materialised first (and its derivative, under a fit's Jacobian): the five
+        # shifted reads of the differences would otherwise each recompute it.
+        phi = fusion_barrier(phi_of_alpha(alpha_sh + sign * gap), d)
         slope = _difference_slopes(phi, dtau)
     return knots, dtau, phi, slope
 
@@ -239,9 +278,9 @@ def hermite(t, p0, p1, m0, m1):
     )
 
 
-def _interpolate(gap, knots, dtau, phi, slope):
+def _interpolate(gap, knots, dtau, phi, slope, *, derivative=False):
     # Cubic Hermite in tau = ln(gap) on the uniform knots; below the first knot the
-    # logarithmic law, linear in tau.
+    # logarithmic law, linear in tau. With `derivative`: d/d gap of the same.
     n = phi.shape[0]
     tau0 = knots[0]
     inv = 1.0 / dtau
@@ -249,9 +288,18 @@ def _interpolate(gap, knots, dtau, phi, slope):
     tau = jnp.log(jnp.maximum(gap, floor_gap))
     i = jnp.clip(jnp.floor((tau - tau0) * inv).astype(jnp.int32), 0, n - 2)
     # The fraction against the knot's own tau (no loss from |tau - tau0| ~ 30); it may
-    # pass 1 by ~1e-13 / dtau at the far end.
-    t = jnp.maximum((tau - knots[i]) * inv, 0.0)
-    inside = hermite(t, phi[i], phi[i + 1], slope[i] * dtau, slope[i + 1] * dtau)
+    # pass 1 by ~1e-13 / dtau at the far end. In float64 the knot's position by
+    # arithmetic is exact to round-off and saves a gather (and its tangent under a
+    # fit's Jacobian); lower precisions read the stored knot.
+    base = tau0 + i * dtau if knots.dtype == jnp.float64 else knots[i]
+    t = jnp.maximum((tau - base) * inv, 0.0)
+    p0, p1, m0, m1 = phi[i], phi[i + 1], slope[i] * dtau, slope[i + 1] * dtau
     gap_safe = jnp.where(gap > 0, gap, floor_gap)
+    if derivative:  # d phi / d tau, then d tau / d gap = 1 / gap
+        t2 = t * t
+        inside = (6.0 * t2 - 6.0 * t) * (p0 - p1) + (3.0 * t2 - 4.0 * t + 1.0) * m0
+        inside = (inside + (3.0 * t2 - 2.0 * t) * m1) * inv
+        return jnp.where(gap < floor_gap, slope[0], inside) / gap_safe
+    inside = hermite(t, p0, p1, m0, m1)
     below = phi[0] + slope[0] * (jnp.log(gap_safe) - tau0)
     return jnp.where(gap < floor_gap, below, inside)

@@ -8,16 +8,17 @@ compiled fit programs are reused across tests.
 import json
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+import jaxlens as jl
 from jaxlens import (
     RS_SUN_M,
     Camera,
-    EscapeTable,
     GaussianStar,
     Uniform,
     clipped_mean,
@@ -108,14 +109,21 @@ def test_einstein_ring_angle_gradient():
 
 
 @pytest.mark.parametrize("d", [5.0, 1000.0])
-def test_escape_table_matches_trace(d):
-    table = jax.jit(EscapeTable.build)(d)
+def test_the_fits_ray_map_matches_trace(d):
+    # The fit's table: a RayMap of 4096 knots out to pi/2 with values-only knots (slopes
+    # by fourth-order differences).
+    build = eqx.filter_jit(jl.RayMap.build)
+    table = build(d, knots=4096, alpha_max=0.5 * math.pi, exact_slopes=False)
     a_sh = float(shadow_angle(d))
     gap = np.geomspace(1e-7 * a_sh, 0.5 * np.pi - a_sh, 3000)
     alpha = a_sh + gap
     err = np.abs(np.asarray(table.escape_angle(alpha)) - trace(alpha, d, accuracy=1e-13).phi)
-    # The interpolation (4096 knots): 1.1e-10 measured from 1e-4 of the shadow angle out.
-    assert err[gap > 1e-4 * a_sh].max() < 3e-10
+    # The interpolation: 1.1e-11 measured from 1e-4 of the shadow angle out, as with
+    # slopes by autodiff (the difference slopes are fourth order, like the Hermite).
+    assert err[gap > 1e-4 * a_sh].max() < 5e-11
+    exact = build(d, knots=4096, alpha_max=0.5 * math.pi)
+    err_exact = np.abs(np.asarray(exact.escape_angle(alpha)) - trace(alpha, d, accuracy=1e-13).phi)
+    assert err[gap > 1e-4 * a_sh].max() < 2 * err_exact[gap > 1e-4 * a_sh].max() + 1e-12
     # Nearer the edge the closed form itself is conditioned to ~1e-16 / relative gap.
     assert err.max() < 1e-8
 
