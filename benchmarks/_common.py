@@ -17,6 +17,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # Where result files go: `benchmarks/results/`, or `$JAXLENS_BENCH_RESULTS` (a smoke run
 # on a loaded machine writes there, so the committed figures are left alone).
 RESULTS = pathlib.Path(os.environ.get("JAXLENS_BENCH_RESULTS") or ROOT / "benchmarks" / "results")
+# The figures that docs/ shows: `docs/images/`, or the results folder when it is redirected.
+DOCS_IMAGES = RESULTS if os.environ.get("JAXLENS_BENCH_RESULTS") else ROOT / "docs" / "images"
 if str(ROOT) not in sys.path:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(ROOT))
 
