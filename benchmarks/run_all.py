@@ -29,6 +29,7 @@ def main(argv=None):
             "bench_render",
             "bench_effects",
             "bench_fit",
+            "bench_memory",
         ),
         help="run only these benchmarks",
     )
@@ -40,6 +41,8 @@ def main(argv=None):
         "bench_render": ["--repeats", "5", "--skip-check"] if args.quick else [],
         "bench_effects": ["--quick"] if args.quick else [],
         "bench_fit": ["--cases", "3"] if args.quick else [],
+        # a fresh process per case; --quick: 512 x 512, report to a temporary folder
+        "bench_memory": ["--quick"] if args.quick else [],
     }
     failed = []
     for name, extra in plan.items():
