@@ -339,9 +339,7 @@ def images(folder, size):
     frames = []
     for d in (1e3, 30.0, 4.0):
         cam = jl.Camera(d, math.radians(90), w // 2, h, supersample=2)
-        s = jl.Scene(
-            cam, stars + floor, motion=jl.RadialInfall(), redshift=jl.Redshift("spectral")
-        )
+        s = jl.Scene(cam, stars + floor, motion=jl.RadialInfall(), redshift=jl.Redshift("spectral"))
         frames.append(jl.render(s))
     row = np.concatenate(frames, axis=1)
     jl.write_image(folder / "effects_approach.png", row / np.percentile(row, 99.7))

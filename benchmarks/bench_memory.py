@@ -171,8 +171,9 @@ def block_accounting(size: int) -> dict:
     sky = jl.DefaultSky() + jl.GaussianStar(math.radians(1.0), 1.0)
     scenes = {
         "bare": jl.Scene(cam, sky),
-        "effects": jl.Scene(cam, sky, motion=jl.CircularOrbit(), redshift=jl.Redshift(),
-                            disk=jl.Disk()),  # fmt: skip
+        "effects": jl.Scene(
+            cam, sky, motion=jl.CircularOrbit(), redshift=jl.Redshift(), disk=jl.Disk()
+        ),
     }
     return {k: jl.block_memory(s, dtype=np.float32) for k, s in scenes.items()}
 
@@ -230,8 +231,7 @@ def write_report(path, size, load, res, blocks):
         f"{'yes' if a_e['same_as_toml'] and a_b['same_as_toml'] else 'NO'} "
         "(`eqx.tree_equal` with `jl.load_scene`).",
         "",
-        "## CLI: `jaxlens render scene.toml -o out.exr --size "
-        f"{size}x{size}`",
+        f"## CLI: `jaxlens render scene.toml -o out.exr --size {size}x{size}`",
         "",
         "The whole process: start-up, imports, compile, render, writing the EXR.",
         "",

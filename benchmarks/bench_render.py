@@ -3,9 +3,10 @@ that every pixel's sky direction is within 0.01 pixel of a per-pixel exact trace
 
     .venv/bin/python benchmarks/bench_render.py [--repeats 15] [--skip-check]
 
-Writes benchmarks/results/render.md (or `$JAXLENS_BENCH_RESULTS/render.md`). The sky is an equirectangular panorama made by
-code (the procedural `DefaultSky` sampled onto a 4096 x 2048 grid), so nothing is
-downloaded; the render looks it up bilinearly at every pixel.
+Writes benchmarks/results/render.md (or `$JAXLENS_BENCH_RESULTS/render.md`). The sky
+is an equirectangular panorama made by code (the procedural `DefaultSky` sampled onto a
+4096 x 2048 grid), so nothing is downloaded; the render looks it up bilinearly at every
+pixel.
 
 What is timed (`render(camera, Panorama(...))`, float32 pixels, the ray map built in
 float64, one pixel a sample):
@@ -224,7 +225,8 @@ def main():
         f"it; an idle 2-core machine takes about half of it as wall time) | "
         f"{cpu * 1e3:.1f} ms |",
         f"| compile (first call minus a warm call) | {compile_s:.1f} s |",
-        f"| of which: ray map for this distance ({knots} knots, float64) | {t_map[0] * 1e3:.1f} ms |",
+        f"| of which: ray map for this distance ({knots} knots, float64) | "
+        f"{t_map[0] * 1e3:.1f} ms |",
         f"| of which: render block with a uniform sky (geometry and ray map look-ups) | "
         f"{t_geom[0] * 1e3:.1f} ms |",
         f"| of which: render block with the panorama (on the device) | {t_block[0] * 1e3:.1f} ms |",

@@ -2,9 +2,10 @@
 
     python benchmarks/run_all.py [--quick]
 
-`--quick` (about 6 minutes on 2 cores) uses fewer rays, settings, repeats and fit
-cases; the full run (about 25 minutes) writes the tables the README shows. Results go to
-`benchmarks/results/`.
+`--quick` (about 8 minutes on 2 cores) uses fewer rays, settings, repeats and fit
+cases, and a 512 x 512 bench_memory whose report is not kept; the full run (about 25
+minutes, plus bench_memory's 4096 x 4096 renders) writes the tables the README shows.
+Results go to `benchmarks/results/` (or `$JAXLENS_BENCH_RESULTS`).
 """
 
 import argparse

@@ -129,9 +129,7 @@ def main(argv=None):
     p.add_argument(
         "--rk4-max", type=float, default=1e6, help="largest RK4 batch (default 1e6; 1e7 ~ 5 min)"
     )
-    p.add_argument(
-        "--max-rays", type=float, default=None, help="largest batch (a smoke test: 1e4)"
-    )
+    p.add_argument("--max-rays", type=float, default=None, help="largest batch (a smoke test: 1e4)")
     args = p.parse_args(argv)
     max_rays = None if args.max_rays is None else int(args.max_rays)
     RESULTS.mkdir(parents=True, exist_ok=True)
