@@ -14,7 +14,11 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+# Where result files go: `benchmarks/results/`, or `$JAXLENS_BENCH_RESULTS` (a smoke run
+# on a loaded machine writes there, so the committed figures are left alone).
+RESULTS = pathlib.Path(os.environ.get("JAXLENS_BENCH_RESULTS") or ROOT / "benchmarks" / "results")
+# The figures that docs/ shows: `docs/images/`, or the results folder when it is redirected.
+DOCS_IMAGES = RESULTS if os.environ.get("JAXLENS_BENCH_RESULTS") else ROOT / "docs" / "images"
 if str(ROOT) not in sys.path:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(ROOT))
 
@@ -83,6 +87,11 @@ def machine() -> dict:
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "commit": commit,
     }
+
+
+def load_average() -> float:
+    """The 1-minute load average (NaN where the OS has none): wall times move with it."""
+    return os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
 
 
 def machine_markdown(info: dict | None = None) -> str:

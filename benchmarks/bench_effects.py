@@ -1,18 +1,22 @@
 """What each effect costs, and what the plan's fast paths save.
 
-1. The same star scene rendered through `render_scene` without effects and with each
-   effect switched on, one at a time, next to the plain renderer (`render`): a scene
-   that names no effect takes the plain renderer's own program, and a stage a scene
-   does not name is absent from its compiled program (counted in the lowered text).
-2. A disk seen from afar: tracing only the rays that can reach it (the plan's gather)
-   against tracing every ray (masked).
+1. The same star scene rendered through `render(Scene(...))` without effects and with
+   each effect switched on, one at a time, next to the shorthand `render(camera, sky)`:
+   one pipeline for all, and a stage a scene does not name is absent from its compiled
+   program (the `jaxlens.<stage>` scopes counted in the lowered text of
+   `eqx.filter_jit(render_array)`).
+2. A disk seen from afar: tracing only the rays that can reach it (the plan's gather,
+   `Plan.disk_rays`) against tracing every ray (masked: the same plan with
+   `disk_rays=None`), both as `render_array(scene, plan=..., ray_map=...)` compiled
+   with `eqx.filter_jit`, the ray map built once.
 3. Sky rays of a view far from the hole at one accuracy (1e-8 rad): the weak-field
    series, the alpha table (build + look-up), and the exact per-ray closed form,
    with their errors against `Exact(iterations=12)`.
 
 Timing: a warm-up call first (compile time reported apart), then the median of
 repeats. Results: `benchmarks/results/effects.md`; `--images` also renders the
-figures of `docs/effects.md` (`docs/images/effects_*.png`).
+figures of `docs/effects.md` (`docs/images/effects_*.png`). With
+`JAXLENS_BENCH_RESULTS=DIR` set, the report and the figures go to DIR instead.
 
     .venv/bin/python benchmarks/bench_effects.py [--quick] [--images]
 """
@@ -25,17 +29,49 @@ import sys
 import time
 
 import _common
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import jaxlens as jl
-from jaxlens import _compose as C
-from jaxlens import _disk as K
-from jaxlens import _effects as E
-from jaxlens._sky import Checker
 
 ACC = 1e-8
+
+
+@eqx.filter_jit
+def _image(scene, plan, ray_map):
+    """One compiled `render_array` of a scene with a given plan and prebuilt ray map
+    (the plan is static: each plan compiles its own program)."""
+    return jl.render_array(scene, plan=plan, ray_map=ray_map)
+
+
+@eqx.filter_jit
+def _build_map(distance, accuracy):
+    return jl.RayMap.build(distance, accuracy=accuracy)
+
+
+def whole_plan(scene):
+    """The plan of the whole image as one block, as `render_array` takes it."""
+    cam = scene.camera
+    return jl.plan(scene, chunk_samples=cam.width * cam.height * cam.supersample**2 * 2)
+
+
+def lowered_text(scene):
+    """The lowered (StableHLO) text of the scene's image program, with its
+    `jaxlens.<stage>` scopes (`debug_info=True`)."""
+    return eqx.filter_jit(jl.render_array).lower(scene).lowered.as_text(debug_info=True)
+
+
+def weak_max_samples():
+    """The most rays a view the plan takes through the weak-field series, read from
+    the reason a plan gives for a view above it (None if the wording changes)."""
+    cam = jl.Camera(1e4, math.radians(2.0), 8192, 8192)
+    for r in jl.plan(jl.Scene(cam, jl.Uniform(1.0))).reasons:
+        m = re.search(r"rays a view > (\d+)", r)
+        if m:
+            return int(m.group(1))
+    return None
 
 
 def measure(fns, rounds=11):
@@ -72,49 +108,51 @@ def _ops(text, name):
 
 def effect_costs(size):
     cam = jl.Camera(30.0, math.radians(60), size, size)
-    sky = E.BlackbodyStars.random(48, seed=2, sigma=0.01) + jl.Uniform(0.01)
-    red_b, red_s = E.Redshift("bolometric"), E.Redshift("spectral")
-    disk = K.Disk(3.0, 14.0, math.radians(80.0))
+    sky = jl.BlackbodyStars.random(48, seed=2, sigma=0.01) + jl.Uniform(0.01)
+    red_b, red_s = jl.Redshift("bolometric"), jl.Redshift("spectral")
+    disk = jl.Disk(3.0, 14.0, math.radians(80.0))
     variants = [
         ("no effects", {}),
         ("+ Redshift(bolometric)", dict(redshift=red_b)),
         ("+ Redshift(spectral)", dict(redshift=red_s)),
-        ("+ RadialInfall", dict(motion=E.RadialInfall())),
-        ("+ CircularOrbit", dict(motion=E.CircularOrbit())),
-        ("+ CircularOrbit + Redshift(spectral)", dict(motion=E.CircularOrbit(), redshift=red_s)),
+        ("+ RadialInfall", dict(motion=jl.RadialInfall())),
+        ("+ CircularOrbit", dict(motion=jl.CircularOrbit())),
+        ("+ CircularOrbit + Redshift(spectral)", dict(motion=jl.CircularOrbit(), redshift=red_s)),
         ("+ Disk (80 deg, r_out 14)", dict(disk=disk)),
         ("+ Disk + Redshift(spectral)", dict(disk=disk, redshift=red_s)),
     ]
-    fns = {"plain renderer `render(camera, sky)`": lambda: jl.render(cam, sky, accuracy=ACC)}
-    stages, texts = {"plain renderer `render(camera, sky)`": "-"}, {}
+    shorthand = "shorthand `render(camera, sky)`"
+    fns = {shorthand: lambda: jl.render(cam, sky, accuracy=ACC)}
+    stages, texts = {shorthand: "-"}, {}
     for name, kw in variants:
-        scene = C.EffectScene(cam, sky, accuracy=ACC, **kw)
-        key = f"`render_scene`: {name}"
-        fns[key] = lambda s=scene: C.render_scene(s)
-        text = C.lowered_text(scene)
+        scene = jl.Scene(cam, sky, accuracy=ACC, **kw)
+        key = f"`render(Scene)`: {name}"
+        fns[key] = lambda s=scene: jl.render(s)
+        text = lowered_text(scene)
         texts[name] = text
         found = [st for st in ("aberration", "redshift", "disk") if f"jaxlens.{st}" in text]
-        stages[key] = ", ".join(found) or ("(render_array)" if C.plan(scene).bare else "-")
+        stages[key] = ", ".join(found) or "-"
     times = measure(fns)
     return [(k, *times[k], stages[k]) for k in fns], texts
 
 
 def far_disk(size):
     cam = jl.Camera(300.0, math.radians(20), size, size)
-    disk = K.Disk(3.0, 10.0, math.radians(80.0), crossings=2)
-    scene = C.EffectScene(cam, jl.Uniform(0.01), redshift=E.Redshift("spectral"), disk=disk)
-    p, idx = C._plan(scene)
-    rm = C._build_map(cam.distance, ACC)
+    disk = jl.Disk(3.0, 10.0, math.radians(80.0), crossings=2)
+    scene = jl.Scene(cam, jl.Uniform(0.01), redshift=jl.Redshift("spectral"), disk=disk)
+    p = whole_plan(scene)
+    rm = _build_map(cam.distance, ACC)
     nodisk = dataclasses.replace(scene, disk=None)
     runs = {
-        "gather the reachable rays (the plan)": (scene, p, C._padded(idx, p)),
-        "every ray, masked": (scene, dataclasses.replace(p, disk_rays=None), None),
-        "no disk (same scene otherwise)": (nodisk, C.plan(nodisk), None),
+        "gather the reachable rays (the plan)": (scene, p),
+        "every ray, masked": (scene, dataclasses.replace(p, disk_rays=None)),
+        "no disk (same scene otherwise)": (nodisk, whole_plan(nodisk)),
     }
     fns = {
-        k: (lambda sc=sc, pl=pl, ix=ix: C._program(sc, pl, ix, rm).block_until_ready())
-        for k, (sc, pl, ix) in runs.items()
+        k: (lambda sc=sc, pl=pl: _image(sc, pl, rm).block_until_ready())
+        for k, (sc, pl) in runs.items()
     }
+    fns["`render(scene)` (blocks, the plan's gather)"] = lambda: jl.render(scene)
     times = measure(fns)
     return p, [(k, *times[k]) for k in fns]
 
@@ -124,13 +162,13 @@ def geometry_paths(size):
     alpha = cam.rays()[0].reshape(-1)
     d = cam.distance
     ref = np.asarray(jax.jit(lambda a: jl.trace(a, d, method=jl.Exact(iterations=12)).phi)(alpha))
-    weak = jax.jit(lambda a: C.weak_field_escape_angle(a, d)[0])
+    weak = jax.jit(lambda a: jl.weak_field_escape_angle(a, d)[0])
     look = jax.jit(lambda m, a: m.escape_angle(a))
     exact = jax.jit(lambda a: jl.trace(a, d, accuracy=ACC, method="exact").phi)
-    rm = C._build_map(d, ACC)
+    rm = _build_map(d, ACC)
     fns = {
         "weak-field series": lambda: weak(alpha).block_until_ready(),
-        "alpha table: build": lambda: jax.block_until_ready(C._build_map(d, ACC)),
+        "alpha table: build": lambda: jax.block_until_ready(_build_map(d, ACC)),
         "alpha table: look-up": lambda: look(rm, alpha).block_until_ready(),
         "exact per ray (`trace`, accuracy 1e-8)": lambda: exact(alpha).block_until_ready(),
     }
@@ -141,16 +179,16 @@ def geometry_paths(size):
         "exact per ray (`trace`, accuracy 1e-8)": exact(alpha),
     }
     errs = {k: float(np.max(np.abs(np.asarray(v) - ref))) for k, v in errs.items()}
-    bound = float(jnp.max(C.weak_field_escape_angle(alpha, d)[1]))
+    bound = float(jnp.max(jl.weak_field_escape_angle(alpha, d)[1]))
     rows = [(k, *times[k], errs.get(k)) for k in fns]
     star = jl.GaussianStar(0.002, 1.0, lon=math.radians(5.5), lat=0.002)
     scenes = {
-        m: C.EffectScene(cam, star, redshift=E.Redshift("bolometric"), method=m)
+        m: jl.Scene(cam, star, redshift=jl.Redshift("bolometric"), method=m)
         for m in ("weak_field", "table", "trace")
     }
-    rtimes = measure({m: (lambda s=s: C.render_scene(s)) for m, s in scenes.items()})
+    rtimes = measure({m: (lambda s=s: jl.render(s)) for m, s in scenes.items()})
     renders = [(m, *rtimes[m]) for m in scenes]
-    auto = C.plan(C.EffectScene(cam, star, redshift=E.Redshift("bolometric")))
+    auto = jl.plan(jl.Scene(cam, star, redshift=jl.Redshift("bolometric")))
     n = alpha.size
     # break-even of the series against the table: CPU time, series minus look-up a ray
     extra = (times["weak-field series"][2] - times["alpha table: look-up"][2]) / n
@@ -194,9 +232,10 @@ def write_report(path, size, cost_rows, texts, far_plan, far_rows, geos):
     with_disk = texts["+ Disk + Redshift(spectral)"]
     lines += [
         "",
-        "*Stages in the program*: the `jaxlens.<stage>` scopes in the lowered (StableHLO)",
-        "text of the program `render_scene` compiled; a scene without effects is handed",
-        "to the plain renderer, whose program it is (hence no compile of its own).",
+        "*Stages in the program*: the effect stages' `jaxlens.<stage>` scopes in the",
+        "lowered (StableHLO) text of the scene's program (`eqx.filter_jit(render_array)`);",
+        "every scene, effects or not, runs the one block pipeline of `render`, and the",
+        "shorthand `render(camera, sky)` is the scene without effects (the same program).",
         f"Lowered ops of orbit + spectral without a disk: {plain.count('stablehlo.')} "
         f"({_ops(plain, 'while')} loop: the stars' scan); with the disk: "
         f"{with_disk.count('stablehlo.')} ({_ops(with_disk, 'while')} loops, + the RK4 scans).",
@@ -204,7 +243,11 @@ def write_report(path, size, cost_rows, texts, far_plan, far_rows, geos):
         f"## 2. A far disk: only the rays that can reach it ({size} x {size}, D = 300,"
         " FOV 20 deg, r_out = 10, 2 crossings; compiled programs, table built once)",
         "",
-        f"The plan: {far_plan.disk_rays} of {far_plan.samples} rays can come within r_out.",
+        f"The plan: {far_plan.disk_reach} of {far_plan.samples} rays can come within r_out "
+        f"(traced in a batch of {far_plan.disk_rays}). The first three rows are",
+        "`render_array` of the whole image under `eqx.filter_jit` with that plan, the same",
+        "plan with `disk_rays=None` (every ray masked), and the scene without its disk; the",
+        "last is `render(scene)` itself, blocks and host copy included.",
         "",
         "| disk rays " + head,
         "|---" + rule,
@@ -233,9 +276,9 @@ def write_report(path, size, cost_rows, texts, far_plan, far_rows, geos):
             "",
             f"Break-even: the series costs {extra * 1e9:.0f} ns (CPU) a ray more than a table",
             f"look-up but needs no build, so it is the cheaper path below about {crossover:.2g}",
-            f"rays a view (the plan takes it up to `WEAK_MAX_SAMPLES` = {C.WEAK_MAX_SAMPLES}).",
+            f"rays a view (the plan takes it up to {weak_max_samples()} rays a view).",
             "",
-            "Whole `render_scene` of the view (a Gaussian star, bolometric redshift), path"
+            "Whole `render(Scene)` of the view (a Gaussian star, bolometric redshift), path"
             " forced, and the plan's own choice:",
             "",
             "| path " + head,
@@ -256,12 +299,12 @@ def cost_figure(path, cost_rows, far_rows, geo):
 
     rows = geo[1]  # the larger view
     fig, axs = plt.subplots(1, 3, figsize=(13, 3.6), gridspec_kw={"width_ratios": [3, 1.3, 1.6]})
-    names = [r[0].replace("`render_scene`: ", "").replace("`", "") for r in cost_rows]
+    names = [r[0].replace("`render(Scene)`: ", "").replace("`", "") for r in cost_rows]
     axs[0].barh(names[::-1], [r[3] * 1e3 for r in cost_rows][::-1], color="tab:blue")
     axs[0].set_xlabel("CPU ms per image (median)")
     axs[0].set_title("one star scene, each effect on its own", fontsize=10)
-    axs[1].bar(["gather", "all rays", "no disk"], [r[3] * 1e3 for r in far_rows],
-               color="tab:orange")  # fmt: skip
+    axs[1].bar(["gather", "all rays", "no disk", "render"][: len(far_rows)],
+               [r[3] * 1e3 for r in far_rows], color="tab:orange")  # fmt: skip
     axs[1].set_ylabel("CPU ms per image")
     axs[1].set_title("far disk: rays traced", fontsize=10)
     labels = ["series", "table\nbuild", "table\nlook-up", "exact"]
@@ -279,27 +322,25 @@ def images(folder, size):
     """The figures of docs/effects.md, rendered by the library."""
     folder.mkdir(parents=True, exist_ok=True)
     w, h = size, size * 9 // 16
-    stars = E.BlackbodyStars.random(400, seed=5, sigma=0.004, brightness=(0.3, 3.0))
+    stars = jl.BlackbodyStars.random(400, seed=5, sigma=0.004, brightness=(0.3, 3.0))
     floor = jl.Uniform(0.004)  # a faint floor: the shadow shows
     cam = jl.Camera(40.0, math.radians(36), w, h, supersample=2)
-    disk = K.Disk(3.0, 16.0, math.radians(80.0), temperature=7000.0)
-    img = C.render_scene(C.EffectScene(cam, stars, redshift=E.Redshift("spectral"), disk=disk))
+    disk = jl.Disk(3.0, 16.0, math.radians(80.0), temperature=7000.0)
+    img = jl.render(jl.Scene(cam, stars, redshift=jl.Redshift("spectral"), disk=disk))
     jl.write_image(folder / "effects_disk.png", img / np.percentile(img, 99.7))
     cam = jl.Camera(6.0, math.radians(100), w, h, supersample=2)
-    sky = stars + Checker(24, 12, brightness=0.08)
+    sky = stars + jl.Checker(24, 12, brightness=0.08)
     parts = []
-    for motion in (None, E.CircularOrbit(0.0)):
-        s = C.EffectScene(cam, sky, motion=motion, redshift=E.Redshift("bolometric"))
-        parts.append(C.render_scene(s))
+    for motion in (None, jl.CircularOrbit(0.0)):
+        s = jl.Scene(cam, sky, motion=motion, redshift=jl.Redshift("bolometric"))
+        parts.append(jl.render(s))
     both = np.concatenate([parts[0], np.ones((h, 4, 3), np.float32), parts[1]], axis=1)
     jl.write_image(folder / "effects_orbit.png", both / np.percentile(both, 99.5))
     frames = []
     for d in (1e3, 30.0, 4.0):
         cam = jl.Camera(d, math.radians(90), w // 2, h, supersample=2)
-        s = C.EffectScene(
-            cam, stars + floor, motion=E.RadialInfall(), redshift=E.Redshift("spectral")
-        )
-        frames.append(C.render_scene(s))
+        s = jl.Scene(cam, stars + floor, motion=jl.RadialInfall(), redshift=jl.Redshift("spectral"))
+        frames.append(jl.render(s))
     row = np.concatenate(frames, axis=1)
     jl.write_image(folder / "effects_approach.png", row / np.percentile(row, 99.7))
 
@@ -316,7 +357,7 @@ def main(argv=None):
     geos = [geometry_paths(size // 2), geometry_paths(2 * size)]
     out = _common.RESULTS / "effects.md"
     write_report(out, size, cost_rows, texts, far_plan, far_rows, geos)
-    docs = _common.ROOT / "docs" / "images"
+    docs = _common.DOCS_IMAGES
     docs.mkdir(parents=True, exist_ok=True)
     cost_figure(docs / "effects_costs.png", cost_rows, far_rows, geos[1])
     if args.images:

@@ -35,7 +35,7 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "results"
+RESULTS = _common.RESULTS  # or $JAXLENS_BENCH_RESULTS
 B_C = 1.5 * math.sqrt(3.0)
 # quad warns on the innermost knots (alpha - alpha_sh ~ 1e-9 alpha_sh, Phi ~ 20 rad), whose
 # relative error is still ~1e-9 there (checked against `trace`) and whose area is ~0.

@@ -3,9 +3,10 @@ that every pixel's sky direction is within 0.01 pixel of a per-pixel exact trace
 
     .venv/bin/python benchmarks/bench_render.py [--repeats 15] [--skip-check]
 
-Writes benchmarks/results/render.md. The sky is an equirectangular panorama made by
-code (the procedural `DefaultSky` sampled onto a 4096 x 2048 grid), so nothing is
-downloaded; the render looks it up bilinearly at every pixel.
+Writes benchmarks/results/render.md (or `$JAXLENS_BENCH_RESULTS/render.md`). The sky
+is an equirectangular panorama made by code (the procedural `DefaultSky` sampled onto a
+4096 x 2048 grid), so nothing is downloaded; the render looks it up bilinearly at every
+pixel.
 
 What is timed (`render(camera, Panorama(...))`, float32 pixels, the ray map built in
 float64, one pixel a sample):
@@ -27,7 +28,6 @@ part (their centroid); captured pixels have no direction. The strict angular err
 
 import argparse
 import math
-import os
 import pathlib
 import sys
 import time
@@ -41,19 +41,22 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import _common  # noqa: E402
+import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxlens._camera import Camera  # noqa: E402
-from jaxlens._render import (  # noqa: E402
-    _block_program,
-    _build_views,
-    plan_blocks,
+import jaxlens as jl  # noqa: E402
+from jaxlens import (  # noqa: E402
+    Camera,
+    DefaultSky,
+    Exact,
+    Panorama,
+    Uniform,
+    equirectangular,
     render,
     sky_directions,
+    trace,
 )
-from jaxlens._sky import DefaultSky, Panorama, Uniform, equirectangular  # noqa: E402
-from jaxlens._trace import Exact, trace  # noqa: E402
 
 W, H, DISTANCE, FOV_DEG = 1920, 1080, 20.0, 60.0
 GOAL_S, GOAL_PX = 0.1, 0.01
@@ -63,12 +66,24 @@ def machine() -> str:
     """`_common.machine()` on one line, with the load average (this benchmark's wall
     times move with it)."""
     info = _common.machine()
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = _common.load_average()
     return (
         f"{info['cpu']}, {info['usable_cores']} cores usable, load average {load:.1f} at the "
         f"start; JAX {info['versions']['jax']} ({jax.default_backend()}), {info['date']}, "
         f"commit {info['commit']}"
     )
+
+
+@eqx.filter_jit
+def build_map(distance):
+    """The ray map of a distance, as `render` builds it (float64 under x64)."""
+    return jl.RayMap.build(distance, accuracy=1e-8)
+
+
+@eqx.filter_jit
+def image(scene, plan, ray_map):
+    """The whole image as one compiled `render_array` with a given plan and ray map."""
+    return jl.render_array(scene, plan=plan, ray_map=ray_map)
 
 
 def timed(f, repeats):
@@ -162,18 +177,20 @@ def main():
     assert img.shape == (H, W, 3) and np.all(np.isfinite(img))
 
     # Breakdown: the ray map alone, the geometry alone (a uniform sky needs no look-up),
-    # the full block on the device, and the float64 render for comparison.
-    plan = plan_blocks(camera)
-    dist = np.array([DISTANCE])
-    t_map = timed(lambda: _build_views(dist, 1e-8, jnp.dtype("float32")), args.repeats)
-    views = _build_views(dist, 1e-8, jnp.dtype("float32"))
-    cams = jax.tree.map(lambda a: a[None], camera)
-    r0 = jnp.asarray(0, jnp.float32)
+    # the full block on the device, and the float64 render for comparison. The block is
+    # `render_array` with the render's own plan (one block holds this image) and a
+    # prebuilt ray map, compiled with `eqx.filter_jit`.
+    plan = jl.plan(jl.Scene(camera, sky))
+    assert plan.blocks == 1, plan  # else the whole-image block below is not render's
+    dist = jnp.asarray(DISTANCE, jnp.float64)
+    ray_map = jax.block_until_ready(build_map(dist).astype(jnp.float32))  # compiles
+    t_map = timed(lambda: build_map(dist).astype(jnp.float32), args.repeats)
 
     def block(s):
-        return _block_program(cams, s, views, r0, plan["rows"], True, True, plan["pair"])
+        return image(jl.Scene(camera, s), plan, ray_map)
 
-    block(Uniform(f32(0.5)))
+    block(Uniform(f32(0.5)))  # compiles (a sky is part of the program: each compiles)
+    block(sky)
     t_geom = timed(lambda: block(Uniform(f32(0.5))), args.repeats)
     t_block = timed(lambda: block(sky), args.repeats)
     cam64 = Camera(DISTANCE, math.radians(FOV_DEG), W, H)
@@ -184,6 +201,7 @@ def main():
     render(oriented, sky)
     t_general = timed(lambda: render(oriented, sky), max(3, args.repeats // 3))
 
+    knots = int(ray_map.phi.shape[0])
     acc = None if args.skip_check else accuracy(camera)
     print(f"warm {warm_med * 1e3:.1f} ms (min {warm_min * 1e3:.1f}), compile {compile_s:.1f} s")
     print(acc)
@@ -207,7 +225,8 @@ def main():
         f"it; an idle 2-core machine takes about half of it as wall time) | "
         f"{cpu * 1e3:.1f} ms |",
         f"| compile (first call minus a warm call) | {compile_s:.1f} s |",
-        f"| of which: ray map for this distance (3189 knots, float64) | {t_map[0] * 1e3:.1f} ms |",
+        f"| of which: ray map for this distance ({knots} knots, float64) | "
+        f"{t_map[0] * 1e3:.1f} ms |",
         f"| of which: render block with a uniform sky (geometry and ray map look-ups) | "
         f"{t_geom[0] * 1e3:.1f} ms |",
         f"| of which: render block with the panorama (on the device) | {t_block[0] * 1e3:.1f} ms |",
@@ -256,7 +275,7 @@ def main():
             "pixel's own.",
             "",
         ]
-    out = ROOT / "benchmarks" / "results" / "render.md"
+    out = _common.RESULTS / "render.md"
     out.parent.mkdir(exist_ok=True)
     out.write_text("\n".join(lines))
     print(f"wrote {out}")

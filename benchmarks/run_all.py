@@ -2,9 +2,10 @@
 
     python benchmarks/run_all.py [--quick]
 
-`--quick` (about 6 minutes on 2 cores) uses fewer rays, settings, repeats and fit
-cases; the full run (about 25 minutes) writes the tables the README shows. Results go to
-`benchmarks/results/`.
+`--quick` (about 8 minutes on 2 cores) uses fewer rays, settings, repeats and fit
+cases, and a 512 x 512 bench_memory whose report is not kept; the full run (about 25
+minutes, plus bench_memory's 4096 x 4096 renders) writes the tables the README shows.
+Results go to `benchmarks/results/` (or `$JAXLENS_BENCH_RESULTS`).
 """
 
 import argparse
@@ -29,6 +30,7 @@ def main(argv=None):
             "bench_render",
             "bench_effects",
             "bench_fit",
+            "bench_memory",
         ),
         help="run only these benchmarks",
     )
@@ -40,6 +42,8 @@ def main(argv=None):
         "bench_render": ["--repeats", "5", "--skip-check"] if args.quick else [],
         "bench_effects": ["--quick"] if args.quick else [],
         "bench_fit": ["--cases", "3"] if args.quick else [],
+        # a fresh process per case; --quick: 512 x 512, report to a temporary folder
+        "bench_memory": ["--quick"] if args.quick else [],
     }
     failed = []
     for name, extra in plan.items():

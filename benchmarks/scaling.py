@@ -2,7 +2,7 @@
 
 `trace(..., accuracy=1e-9)` and RK4 (`RK4(dphi=0.01)`, the integrator's default step)
 on the moderate rays (D = 20, alpha uniform in [0.001, 0.5] rad), float64, through
-`jaxlens._shard.trace_sharded`: one batch (`chunk=None`), or chunks of a fixed size
+`jaxlens.trace_sharded`: one batch (`chunk=None`), or chunks of a fixed size
 that compile once, so a batch larger than memory streams through. Each point runs in
 a fresh process, so its peak resident memory (`ru_maxrss`) is its own; the table
 gives the peak above the process's footprint after importing JAX and building the
@@ -10,7 +10,7 @@ rays, next to the 25 bytes per ray that the inputs and outputs themselves need.
 
 Writes `results/scaling.md` and `results/scaling.png`.
 
-    python benchmarks/scaling.py [--quick] [--rk4-max N]
+    python benchmarks/scaling.py [--quick] [--rk4-max N] [--max-rays N]
 """
 
 import argparse
@@ -27,7 +27,7 @@ _CHILD = r"""
 import json, resource, sys, time
 sys.path.insert(0, sys.argv[1] + "/benchmarks")
 from _common import jax, jaxlens, np
-from jaxlens._shard import trace_sharded
+trace_sharded = jaxlens.trace_sharded
 
 n, method, chunk = int(sys.argv[2]), sys.argv[3], sys.argv[4]
 chunk = None if chunk == "none" else int(chunk)
@@ -76,9 +76,10 @@ def run_point(n, method, chunk):
     return rec
 
 
-def plan(quick: bool, rk4_max: int):
+def plan(quick: bool, rk4_max: int, max_rays: int | None = None):
     """(n, method, chunk) points to measure."""
     top = 10**6 if quick else 10**7
+    top = top if max_rays is None else min(top, max_rays)
     ns = [10**k for k in range(3, 8) if 10**k <= top]
     pts = [(n, "auto", None) for n in ns]
     pts += [(n, "auto", CHUNK) for n in ns if n > CHUNK]
@@ -128,11 +129,13 @@ def main(argv=None):
     p.add_argument(
         "--rk4-max", type=float, default=1e6, help="largest RK4 batch (default 1e6; 1e7 ~ 5 min)"
     )
+    p.add_argument("--max-rays", type=float, default=None, help="largest batch (a smoke test: 1e4)")
     args = p.parse_args(argv)
+    max_rays = None if args.max_rays is None else int(args.max_rays)
     RESULTS.mkdir(parents=True, exist_ok=True)
     info = machine()
     print(machine_markdown(info), flush=True)
-    records = [run_point(n, m, c) for n, m, c in plan(args.quick, int(args.rk4_max))]
+    records = [run_point(n, m, c) for n, m, c in plan(args.quick, int(args.rk4_max), max_rays)]
     rows = [
         [
             "trace(accuracy=1e-9)" if r["method"] == "auto" else "RK4(dphi=0.01)",

@@ -1,6 +1,9 @@
 """Make the README's images with the library (nothing downloaded):
 
-    .venv/bin/python docs/make_images.py
+    .venv/bin/python docs/make_images.py [--quick] [--out DIR]
+
+`--quick` renders every image at a quarter of its size (a smoke test); `--out DIR`
+writes them to DIR instead of `docs/images/`.
 
 - `images/ring.png`: a star exactly behind the hole seen from D = 20 R_S: the Einstein
   ring at 20.2039 degrees, the shadow, the faint relativistic rings at its edge.
@@ -10,6 +13,7 @@
 - `images/approach_strip.png`: six frames of an approach from D = 1e5 to 3 R_S.
 """
 
+import argparse
 import math
 import pathlib
 import sys
@@ -25,50 +29,47 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 from PIL import Image, ImageDraw  # noqa: E402
 
-from jaxlens import (  # noqa: E402
-    Camera,
-    DefaultSky,
-    GaussianStar,
-    Panorama,
-    approach,
-    equirectangular,
-    render,
-    render_frames,
-    to_display,
-    write_image,
-)
+import jaxlens as jl  # noqa: E402
 
 OUT = ROOT / "docs" / "images"
 F32 = np.float32
 
 
-def main():
-    OUT.mkdir(parents=True, exist_ok=True)
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="a quarter of each size (smoke test)")
+    ap.add_argument("--out", type=pathlib.Path, default=OUT, help="folder (default docs/images)")
+    args = ap.parse_args(argv)
+    out, q = args.out, 4 if args.quick else 1
+    out.mkdir(parents=True, exist_ok=True)
     deg = math.radians
 
-    ring = render(Camera(20.0, deg(60.0), 640, 360, supersample=4, dtype=F32),
-                  GaussianStar(deg(1.0), 1.0))  # fmt: skip
-    write_image(OUT / "ring.png", ring, exposure=0.5)
+    ring = jl.render(jl.Camera(20.0, deg(60.0), 640 // q, 360 // q, supersample=4, dtype=F32),
+                     jl.GaussianStar(deg(1.0), 1.0))  # fmt: skip
+    jl.write_image(out / "ring.png", ring, exposure=0.5)
 
-    pano = equirectangular(DefaultSky(), 2048, 1024, supersample=2)
-    write_image(OUT / "milkyway_panorama.jpg", pano[::2, ::2], exposure=1.0)
-    sky = Panorama(pano)
-    view = render(Camera(12.0, deg(75.0), 640, 360, supersample=3, dtype=F32), sky)
-    write_image(OUT / "milkyway.png", view, exposure=1.0)
+    pano = jl.equirectangular(jl.DefaultSky(), 2048 // q, 1024 // q, supersample=2)
+    jl.write_image(out / "milkyway_panorama.jpg", pano[::2, ::2], exposure=1.0)
+    sky = jl.Panorama(pano)
+    view = jl.render(jl.Camera(12.0, deg(75.0), 640 // q, 360 // q, supersample=3, dtype=F32),
+                     sky)  # fmt: skip
+    jl.write_image(out / "milkyway.png", view, exposure=1.0)
 
     distances = np.geomspace(1e5, 3.0, 6)
-    base = Camera(20.0, deg(120.0), 192, 108, supersample=3, dtype=F32)
-    frames = render_frames(approach(base, distances), sky)
+    w, h = 192 // q, 108 // q
+    base = jl.Camera(20.0, deg(120.0), w, h, supersample=3, dtype=F32)
+    frames = jl.render(jl.Scene(jl.approach(base, distances), sky))  # one image a frame
     pad = 4
-    strip = Image.new("RGB", (len(frames) * (192 + pad) - pad, 108 + 16), "white")
+    strip = Image.new("RGB", (len(frames) * (w + pad) - pad, h + 16), "white")
     draw = ImageDraw.Draw(strip)
     for i, (frame, d) in enumerate(zip(frames, distances)):
-        x = i * (192 + pad)
-        strip.paste(Image.fromarray(to_display(frame, exposure=1.0)), (x, 16))
+        x = i * (w + pad)
+        strip.paste(Image.fromarray(jl.to_display(frame, exposure=1.0)), (x, 16))
         draw.text((x + 4, 2), f"D = {d:.3g} R_S", fill="black")
-    strip.save(OUT / "approach_strip.png", optimize=True)
-    for p in sorted(OUT.iterdir()):
-        print(f"{p.relative_to(ROOT)}: {p.stat().st_size / 1024:.0f} KB")
+    strip.save(out / "approach_strip.png", optimize=True)
+    for p in sorted(out.iterdir()):
+        shown = p.relative_to(ROOT) if p.is_relative_to(ROOT) else p
+        print(f"{shown}: {p.stat().st_size / 1024:.0f} KB")
 
 
 if __name__ == "__main__":
