@@ -23,6 +23,21 @@ SIGMA = {"sigma_deg": Key("float", 1.0, in_range(0.0, 180.0), "a number in (0, 1
 IMAGE_PATH = {"path": Key("str", None, lambda v: len(v) > 0, "the path of an image file")}
 
 
+def star_list_keys(sigma_deg: float) -> dict:
+    """The keys of a list of stars (`stars`, `blackbody`): a Gaussian width (default
+    `sigma_deg`, degrees) and either `count` random stars from `seed` or the lists
+    `lon_deg`, `lat_deg`."""
+    return {
+        "sigma_deg": Key(
+            "float", sigma_deg, in_range(0.0, 180.0), "a number in (0, 180) (degrees)"
+        ),
+        "count": Key("int", 200, in_range(0, 100001), "a whole number from 1 to 100000"),
+        "seed": Key("int", 0, anything, "a whole number"),
+        "lon_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
+        "lat_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
+    }
+
+
 def orientation(fields: dict) -> dict:
     """The `yaw`, `pitch`, `roll` keyword arguments (radians) of a validated table."""
     keys = ("yaw_deg", "pitch_deg", "roll_deg")

@@ -10,10 +10,10 @@ from jaxtyping import Array, Float
 
 from .. import _schema
 from .._color import _lookup
-from .._schema import Key, anything, in_range
+from .._schema import Key, anything
 from .._util import as_float as _farray
 from ._base import AbstractSky, angular_distance, direction_from_angles, positive
-from ._table import bad_value, check_star_lists, star_directions, value_range
+from ._table import bad_value, check_star_lists, star_directions, star_list_keys, value_range
 
 
 class BlackbodyStars(AbstractSky):
@@ -119,11 +119,7 @@ def _check(where: str, fields: dict) -> None:
     "sky",
     "blackbody",
     {
-        "sigma_deg": Key("float", 0.2, in_range(0.0, 180.0), "a number in (0, 180) (degrees)"),
-        "count": Key("int", 200, in_range(0, 100001), "a whole number from 1 to 100000"),
-        "seed": Key("int", 0, anything, "a whole number"),
-        "lon_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
-        "lat_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
+        **star_list_keys(0.2),
         "brightness": Key("floats", None, anything, _BRIGHTNESS_VALID),
         "temperature": Key("floats", None, anything, _TEMPERATURE_VALID),
     },

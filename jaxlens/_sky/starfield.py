@@ -11,10 +11,10 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import _schema
 from .._fastmath import arctan2
-from .._schema import Key, anything, in_range
+from .._schema import Key, anything
 from .._util import as_float as _farray
 from ._base import AbstractRGBSky, direction_from_angles, positive
-from ._table import check_star_lists, star_directions, value_range
+from ._table import check_star_lists, star_directions, star_list_keys, value_range
 
 
 class StarField(AbstractRGBSky):
@@ -116,11 +116,7 @@ def _check(where: str, fields: dict) -> None:
     "sky",
     "stars",
     {
-        "sigma_deg": Key("float", 0.15, in_range(0.0, 180.0), "a number in (0, 180) (degrees)"),
-        "count": Key("int", 200, in_range(0, 100001), "a whole number from 1 to 100000"),
-        "seed": Key("int", 0, anything, "a whole number"),
-        "lon_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
-        "lat_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
+        **star_list_keys(0.15),
         "brightness": Key(
             "floats", None, anything, "a number or a list of numbers (peak radiance)"
         ),
