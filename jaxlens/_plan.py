@@ -36,6 +36,7 @@ from ._weak import WEAK_MAX_SAMPLES, weak_field_escape_angle
 
 CHUNK_SAMPLES = 1 << 21  # default area samples a compiled block holds
 _BUCKETS = 16
+DISK_BLOCK_DIVISOR = 4  # a disk scene's blocks hold chunk_samples / 4 area samples
 
 
 @dataclasses.dataclass(frozen=True)
@@ -218,7 +219,17 @@ def _plan(scene, chunk_samples):
     if symmetric:
         reasons.append("centred view, rays depend on |x| and |y|: a quarter of the samples "
                        "go through the escape angle, mirrored")  # fmt: skip
-    b = blocking(cam, chunk_samples, symmetric=symmetric)
+    block_samples = chunk_samples
+    if has_disk and chunk_samples >= 2 * DISK_BLOCK_DIVISOR:
+        # A ray followed through the disk plane holds several times a plain sample's
+        # memory (its crossings and RK4 states): smaller blocks keep the render's peak
+        # memory near a bare scene's (benchmarks/results/memory.md).
+        block_samples = chunk_samples // DISK_BLOCK_DIVISOR
+        reasons.append(
+            f"Disk: blocks of chunk_samples / {DISK_BLOCK_DIVISOR} = {block_samples} area "
+            "samples, for the memory of the traced rays"
+        )
+    b = blocking(cam, block_samples, symmetric=symmetric)
     samples_view = cam.width * cam.height * cam.supersample**2
     base = Plan("table", aberration, redshift, has_disk, None, None, centred, at_origin, symmetric,
                 b["frames"], b["rows"], b["pair"], b["blocks"], b["samples"], None, ())  # fmt: skip

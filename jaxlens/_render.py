@@ -215,6 +215,12 @@ def render_array(
         )
     whole = cam.width * cam.height * cam.supersample**2 * 2
     p = _plan.plan(scene, chunk_samples=whole) if plan is None else plan
+    if p.disk and p.disk_rays is not None and p.blocks != 1:
+        raise ValueError(
+            f"plan gathers {p.disk_rays} disk rays a block of {p.blocks} blocks, not for the "
+            "whole image: pass a plan of one block (jl.plan(scene, chunk_samples=...) large "
+            "enough) or one with disk_rays=None"
+        )
     if p.geometry == "table" and ray_map is None:
         ray_map = RayMap.build(cam.distance, accuracy=scene.accuracy)
     if ray_map is not None:

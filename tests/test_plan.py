@@ -193,3 +193,21 @@ crossings = 2
             jl.Scene.from_dict({"effects": bad})
     with pytest.raises(ValueError, match="method"):
         jl.Scene(CAM, SKY, method="fast")
+
+
+def test_disk_scenes_take_smaller_blocks_and_render_array_wants_one():
+    # A traced disk ray holds several times a plain sample's memory: the plan gives
+    # disk scenes blocks of a quarter of chunk_samples (and says so), and the blocks
+    # still make the image.
+    cam = jl.Camera(30.0, math.radians(40), 32, 24)
+    scene = jl.Scene(cam, SKY, disk=jl.Disk(3.0, 12.0, 1.2))
+    p = jl.plan(scene, chunk_samples=32 * 8)
+    assert p.samples == 32 * 2 and p.blocks == 12
+    assert any("chunk_samples / 4" in r for r in p.reasons)
+    np.testing.assert_allclose(
+        jl.render(scene, chunk_samples=32 * 8), jl.render(scene), rtol=0, atol=1e-7
+    )
+    # render_array gathers disk rays over the whole image: a plan of many blocks would
+    # drop rays, so it is refused
+    with pytest.raises(ValueError, match="disk rays a block"):
+        jl.render_array(scene, plan=p)
