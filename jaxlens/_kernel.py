@@ -180,13 +180,18 @@ def _symmetric(scene, plan, ray_map, row0, rows: int, pair: bool):
     return out
 
 
-def _general(scene, plan, ray_map, row0, rows: int):
-    """Camera-frame directions, coverage, $g$ and static-frame rays of every sample."""
-    cam = scene.camera
+def _sample_grid(cam, row0, rows: int):
+    """Sample columns `xs (W k,)`, rows `ys (rows k,)` and their grid `x, y` (pixels)."""
     xs = cam.sample_x()
     ys = cam.sample_y(row0, rows)
     x = jnp.broadcast_to(xs[None, :], (ys.shape[0], xs.shape[0]))
-    y = jnp.broadcast_to(ys[:, None], x.shape)
+    return xs, ys, x, jnp.broadcast_to(ys[:, None], x.shape)
+
+
+def _general(scene, plan, ray_map, row0, rows: int):
+    """Camera-frame directions, coverage, $g$ and static-frame rays of every sample."""
+    cam = scene.camera
+    xs, ys, x, y = _sample_grid(cam, row0, rows)
     sp, cp, cb, sb, cover, g, alpha_s = _geometry(scene, plan, ray_map, x, y)
     n = jnp.stack([sp * cb, sp * sb, -cp], axis=-1)
     return n, cover, g, (alpha_s, cb, sb)
@@ -224,10 +229,7 @@ def static_alpha(scene, plan, row0, rows: int):
     """Static-frame local angle (radians) of every sample of the block, `(rows k, W k)`:
     what the weak-field bound and the disk's reach are decided on."""
     cam = scene.camera
-    xs = cam.sample_x()
-    ys = cam.sample_y(row0, rows)
-    x = jnp.broadcast_to(xs[None, :], (ys.shape[0], xs.shape[0]))
-    y = jnp.broadcast_to(ys[:, None], x.shape)
+    xs, ys, x, y = _sample_grid(cam, row0, rows)
     alpha, cb, sb = cam._angles(x, y, oriented=not plan.centred)
     if plan.aberration is not None:
         alpha = _to_static(scene, alpha, cb, sb)[0]

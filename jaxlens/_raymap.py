@@ -131,14 +131,6 @@ class RayMap(eqx.Module):
         alpha = jnp.asarray(alpha, self.phi.dtype)
         return _interpolate(alpha - self.alpha_sh, self.tau, self.dtau, self.phi, self.slope)
 
-    def escape_slope(self, alpha: ArrayLike) -> Float[Array, "..."]:
-        """$d\\Phi/d\\alpha$ of the interpolant (per radian) at `alpha`, in closed form:
-        the same as `jax.jvp` of `escape_angle`, with only first derivatives of the
-        table under a further derivative (a fit's Jacobian)."""
-        alpha = jnp.asarray(alpha, self.phi.dtype)
-        gap = alpha - self.alpha_sh
-        return _interpolate(gap, self.tau, self.dtau, self.phi, self.slope, derivative=True)
-
     def astype(self, dtype) -> "RayMap":
         """The same table in `dtype` (e.g. float32 for a float32 render of a table built
         in float64); the knots keep their own positions, so interpolation error stays
@@ -278,9 +270,9 @@ def hermite(t, p0, p1, m0, m1):
     )
 
 
-def _interpolate(gap, knots, dtau, phi, slope, *, derivative=False):
+def _interpolate(gap, knots, dtau, phi, slope):
     # Cubic Hermite in tau = ln(gap) on the uniform knots; below the first knot the
-    # logarithmic law, linear in tau. With `derivative`: d/d gap of the same.
+    # logarithmic law, linear in tau.
     n = phi.shape[0]
     tau0 = knots[0]
     inv = 1.0 / dtau
@@ -295,11 +287,6 @@ def _interpolate(gap, knots, dtau, phi, slope, *, derivative=False):
     t = jnp.maximum((tau - base) * inv, 0.0)
     p0, p1, m0, m1 = phi[i], phi[i + 1], slope[i] * dtau, slope[i + 1] * dtau
     gap_safe = jnp.where(gap > 0, gap, floor_gap)
-    if derivative:  # d phi / d tau, then d tau / d gap = 1 / gap
-        t2 = t * t
-        inside = (6.0 * t2 - 6.0 * t) * (p0 - p1) + (3.0 * t2 - 4.0 * t + 1.0) * m0
-        inside = (inside + (3.0 * t2 - 2.0 * t) * m1) * inv
-        return jnp.where(gap < floor_gap, slope[0], inside) / gap_safe
     inside = hermite(t, p0, p1, m0, m1)
     below = phi[0] + slope[0] * (jnp.log(gap_safe) - tau0)
     return jnp.where(gap < floor_gap, below, inside)
