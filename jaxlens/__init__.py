@@ -127,6 +127,7 @@ from ._shard import (
     trace_sharded as trace_sharded,
 )
 from ._sky import (
+    AbstractCompactSky as AbstractCompactSky,
     AbstractRGBSky as AbstractRGBSky,
     AbstractSky as AbstractSky,
     BlackbodyStars as BlackbodyStars,

@@ -54,6 +54,8 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
     p.add_argument("--floor", type=float, help="uniform sky level added to the sky")
     p.add_argument("--supersample", type=int, help=f"k x k samples a pixel (default "
                    f"{supersample_default})")  # fmt: skip
+    p.add_argument("--sampling", choices=("uniform", "gauss"), help="uniform: k x k point "
+                   "samples a pixel (default); gauss: area-exact Gauss-Legendre cells")  # fmt: skip
     p.add_argument("--exposure", type=float, help="exposure in stops, PNG/JPEG (default 0)")
     p.add_argument("--yaw", type=float, help="view turned right, degrees")
     p.add_argument("--pitch", type=float, help="view turned up, degrees")
@@ -89,6 +91,7 @@ def scene_dict(args) -> dict:
     if args.size is not None:
         cam["width"], cam["height"] = _size(args.size)
     flags = {"distance": "distance", "fov": "fov_deg", "supersample": "supersample",
+             "sampling": "sampling",
              "yaw": "yaw_deg", "pitch": "pitch_deg", "roll": "roll_deg"}  # fmt: skip
     for flag, key in flags.items():
         if getattr(args, flag) is not None:

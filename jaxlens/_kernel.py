@@ -27,13 +27,16 @@ and with `pair` a block of rows also yields its mirror rows in the bottom half: 
 quarter of the samples go through the map; the sky is looked up at every sample.
 """
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from . import _disk, _effects
+from . import _area, _disk, _effects
 from ._exact import shadow_angle
 from ._fastmath import sin_cos
+from ._sky import AbstractCompactSky, SkySum
 from ._trace import trace
 from ._weak import weak_field_escape_angle
 
@@ -265,6 +268,227 @@ def _apply_disk(scene, plan, rad, rays, g):
     return flat.at[idx].set(new, mode="drop").reshape(rad.shape)
 
 
+# ------------------------------------------------------------------ area-exact cells
+
+# Relativistic images of order 1 and 2 of a compact source (Phi = Phi_0 + 2 pi, + 4 pi)
+# are integrated across the cells; higher orders are e^{-2 pi} fainter again.
+THIN_ORDERS = (1, 2)
+
+
+def split_sky(sky):
+    """`(compact, rest)`: the compact sources of a sky (a tuple of
+    `AbstractCompactSky`) and the sum of its other parts (`None` when there are none)."""
+    parts = sky.parts if isinstance(sky, SkySum) else (sky,)
+    compact = tuple(p for p in parts if isinstance(p, AbstractCompactSky))
+    rest = [p for p in parts if not isinstance(p, AbstractCompactSky)]
+    if not rest:
+        return compact, None
+    return compact, rest[0] if len(rest) == 1 else SkySum(tuple(rest))
+
+
+def _static_rays(scene, plan, x, y):
+    """Static-frame local angle, orbital plane and Doppler factor (`None` for a static
+    camera) at image-plane points `x, y` (pixels), and $|\\nabla\\alpha_s|$ (radians a
+    pixel) with the unit normal of the iso-alpha lines `(nx, ny)`."""
+    cam = scene.camera
+    f = cam.focal
+    if plan.centred:
+        dx, dy, dz = x, y, jnp.broadcast_to(f, jnp.shape(x))
+        r = ((1, 0, 0), (0, 1, 0), (0, 0, 0))
+    else:
+        rot = cam.rotation()
+        dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * f
+        dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * f
+        dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * f
+        r = rot
+    alpha, cb, sb = cam._angles(x, y, oriented=not plan.centred)
+    rho = jnp.hypot(dx, dy)
+    # d alpha / d(x, y) of alpha = atan2(rho, dz): finite at the axis through the
+    # guarded (cb, sb) that `_angles` returns there.
+    den = rho * rho + dz * dz
+    gx = (dz * (cb * r[0][0] + sb * r[1][0]) - rho * r[2][0]) / den
+    gy = (dz * (cb * r[0][1] + sb * r[1][1]) - rho * r[2][1]) / den
+    doppler = None
+    if plan.aberration == "radial":  # alpha_s depends on alpha alone, with slope delta
+        alpha, cb, sb, doppler = _to_static(scene, alpha, cb, sb)
+        gx, gy = gx * doppler, gy * doppler
+    elif plan.aberration == "boost":
+
+        def static_alpha(x_, y_):
+            a, c, s = cam._angles(x_, y_, oriented=not plan.centred)
+            return _to_static(scene, a, c, s)[0]
+
+        one, zero = jnp.ones_like(x), jnp.zeros_like(x)
+        gx = jax.jvp(static_alpha, (x, y), (one, zero))[1]
+        gy = jax.jvp(static_alpha, (x, y), (zero, one))[1]
+        alpha, cb, sb, doppler = _to_static(scene, alpha, cb, sb)
+    grad = jnp.hypot(gx, gy)
+    safe = grad > 0
+    g_ = jnp.where(safe, grad, 1.0)
+    nx, ny = jnp.where(safe, gx / g_, 1.0), jnp.where(safe, gy / g_, 0.0)
+    return alpha, cb, sb, doppler, jnp.where(safe, grad, 1.0 / f), nx, ny
+
+
+def ring_references(ray_map, dtype):
+    """Where each thin order's escape angle is $(2m+1)\\pi$: `(tau, dphi_dtau)` of
+    shape `(orders,)`, $\\tau = \\ln(\\alpha - \\alpha_{sh})$. Near the shadow edge
+    $\\Phi$ is linear in $\\tau$ to $O(\\alpha - \\alpha_{sh})$, so a source off the
+    axis shifts each ring by $\\Delta\\Phi / (d\\Phi/d\\tau)$ in $\\tau$."""
+    targets = jnp.asarray([(2 * m + 1) * math.pi for m in THIN_ORDERS], dtype)
+    # A loop over the orders, not a Python loop: the map enters once, materialised,
+    # instead of XLA duplicating its producer into every gather.
+    a, slope = jax.lax.map(lambda t: ray_map.solve(t, with_slope=True), targets)
+    gap = a - ray_map.alpha_sh.astype(dtype)
+    return jnp.log(gap), slope * gap
+
+
+def _sky_radiance(sky, plan, n, g):
+    if plan.redshift is None:
+        return sky(n)
+    with jax.named_scope("jaxlens.redshift"):
+        return sky.shifted(n, g, plan.redshift)
+
+
+def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, references=None):
+    """Area-exact radiance of square pixel cells (the `"gauss"` sampling).
+
+    Each cell of side `side` (pixels) with top-left corner `(x0, y0)` (image-plane
+    pixels from the image centre, $x$ right, $y$ up) is split into the $k \\times k$
+    sub-cells of a Gauss-Legendre rule. The sky is evaluated at the rule's nodes
+    (the escaping direction of the static-frame $\\alpha$, as `shade`); the shadow
+    edge enters through the exact fraction of each sub-cell outside it (the edge
+    locally straight across a sub-cell), and the images of order 1 and 2 of compact
+    sources (`AbstractCompactSky`) through the share of each sub-cell that their thin
+    rings cross, times the source's integral across the ring. Every value is
+    continuous in the camera's distance and field of view and in the source position:
+    what a fit differentiates.
+
+    **Arguments:** `scene` (one camera; `scene.camera.sampling` is not consulted),
+    `plan` (its `Plan`; the `"table"` geometry for compact sources), `ray_map` (the
+    `RayMap` of the distance in the camera's dtype), `x0`, `y0` (one shape), `side`
+    (scalar, pixels), `k` (the rule's order; default the camera's `supersample`);
+    `references`: `ring_references(ray_map, dtype)` when the caller evaluates many
+    batches of cells of one scene (computed here otherwise). The scene's values are
+    the caller's to check (`checked`), outside any loop over batches.
+
+    **Returns:** `(main, thin)` of shape `x0.shape + (3,)`: the cells' mean radiance
+    from the nodes and from the thin rings (their sum is the pixel value).
+    """
+    cam = scene.camera
+    k = cam.supersample if k is None else int(k)
+    dt = cam.dtype
+    x0, y0 = jnp.asarray(x0, dt), jnp.asarray(y0, dt)
+    node, weight, centre = (jnp.asarray(v, dt) for v in _area.rule(k))
+    side = jnp.asarray(side, dt)
+    full = jnp.zeros(x0.shape + (k, k), dt)
+
+    def grid(u):  # [..., i (x), j (y)]
+        x = x0[..., None, None] + side * u[:, None] + full
+        y = y0[..., None, None] - side * u[None, :] + full
+        return x, y
+
+    ext_x, ext_y = side * weight[:, None], side * weight[None, :]
+    w2 = weight[:, None] * weight[None, :]
+    if ray_map is not None:
+        alpha_sh = ray_map.alpha_sh.astype(dt)
+    else:
+        alpha_sh = shadow_angle(cam.distance).astype(dt)
+    compact, rest = split_sky(scene.sky)
+
+    # Sub-cells: the static-frame angles at their centres, the edge's normal there.
+    xc, yc = grid(centre)
+    a_c, cb_c, sb_c, dop_c, grad, nx, ny = _static_rays(scene, plan, xc, yc)
+    ax, ay = ext_x * jnp.abs(nx), ext_y * jnp.abs(ny)
+    f = cam.focal
+    if plan.centred and plan.aberration is None:
+        # alpha = atan(rho / f): offsets measured exactly in rho, as on the image plane.
+        t_edge = f * (jnp.tan(a_c) - jnp.tan(alpha_sh))
+    else:
+        t_edge = (a_c - alpha_sh) / grad
+    with jax.named_scope("jaxlens.coverage"):
+        cover = _area.edge_cover(t_edge, ax, ay)
+
+    # Nodes: the sky in the escaping direction; a node inside the shadow takes the
+    # radiance of the escaping part of its sub-cell.
+    xn, yn = grid(node)
+    a_n, cb_n, sb_n, dop_n = _static_rays(scene, plan, xn, yn)[:4]
+    a_edge = alpha_sh + 0.5 * _area.half_extent(ax, ay) * grad
+    g = None
+    if plan.redshift is not None:
+        g = _effects.static_blueshift(cam.distance).astype(dt)
+        g = jnp.broadcast_to(g if dop_n is None else g * dop_n, a_n.shape)
+    with jax.named_scope(f"jaxlens.{plan.geometry}"):
+        phi = _escape_angle(scene, plan, ray_map, jnp.maximum(a_n, a_edge))
+    sp, cp = sin_cos(phi)
+    n = jnp.stack([sp * cb_n, sp * sb_n, -cp], axis=-1)
+    if not plan.at_origin:
+        n = cam.to_world(n)
+    with jax.named_scope("jaxlens.sky"):
+        rad = jnp.zeros(n.shape, dt)
+        if rest is not None:
+            rad = rad + _sky_radiance(rest, plan, n, g)
+        if compact:
+            # Order 0 only (Phi < 2 pi): the higher orders come as thin rings below.
+            prim = sum(_sky_radiance(c, plan, n, g) for c in compact)
+            rad = rad + jnp.where((phi < 2.0 * jnp.pi)[..., None], prim, 0.0)
+    main = jnp.sum((w2 * cover)[..., None] * rad, axis=(-3, -2))
+
+    thin = jnp.zeros_like(main)
+    if compact:
+        if ray_map is None:
+            raise ValueError("thin rings of compact sources need the table geometry")
+        with jax.named_scope("jaxlens.thin_rings"):
+            if references is None:
+                references = ring_references(ray_map, dt)
+            tau_ref, dphi_dtau = references
+            # The ring's radius and its integral vary across a pixel by O(offset /
+            # radius) of the pixel's azimuth: both are taken at the pixel's centre, the
+            # share of each sub-cell they cross per sub-cell.
+            xp, yp = x0 + 0.5 * side, y0 - 0.5 * side
+            _, cb_p, sb_p, dop_p, grad_p = _static_rays(scene, plan, xp, yp)[:5]
+            zero = jnp.zeros_like(cb_p)
+            e1 = jnp.stack([cb_p, sb_p, zero], axis=-1)
+            e3 = jnp.stack([zero, zero, zero - 1.0], axis=-1)
+            if not plan.at_origin:
+                e1, e3 = cam.to_world(e1), cam.to_world(e3)
+            scale = 1.0
+            if plan.redshift is not None:
+                gp = _effects.static_blueshift(cam.distance).astype(dt)
+                gp = gp if dop_p is None else gp * dop_p
+                scale = gp ** (4 if plan.redshift == "bolometric" else 3)
+            exact = plan.centred and plan.aberration is None
+            rho_c = f * jnp.tan(a_c) if exact else None
+            for c in compact:
+                phi0, integral = c.crossing(e1, e3)
+                for i, m in enumerate(THIN_ORDERS):
+                    shift = phi0 + 2.0 * math.pi * m - (2 * m + 1) * math.pi
+                    gap = jnp.exp(tau_ref[i] + shift / dphi_dtau[i])
+                    a_m = alpha_sh + gap
+                    if exact:  # offsets of the sub-cells from the ring, pixels
+                        t_m = (f * jnp.tan(a_m))[..., None, None] - rho_c
+                        px_per_rad = f / jnp.cos(a_m) ** 2
+                    else:
+                        t_m = (a_m[..., None, None] - a_c) / grad
+                        px_per_rad = 1.0 / grad_p
+                    width = px_per_rad * gap / jnp.abs(dphi_dtau[i])  # d rho / d Phi
+                    share = jnp.sum(w2 * _area.edge_density(t_m, ax, ay), axis=(-2, -1))
+                    thin = thin + (share * width * scale)[..., None] * integral
+    return main, thin
+
+
+def _shade_cells(scene, plan, ray_map, row0, rows: int):
+    cam = scene.camera
+    dt = cam.dtype
+    x0 = jnp.arange(cam.width, dtype=dt) - 0.5 * cam.width
+    y0 = 0.5 * cam.height - (jnp.asarray(row0, dt) + jnp.arange(rows, dtype=dt))
+    x0, y0 = (
+        jnp.broadcast_to(x0[None, :], (rows, cam.width)),
+        jnp.broadcast_to(y0[:, None], (rows, cam.width)),
+    )
+    main, thin = cells(checked(scene), plan, ray_map, x0, y0, 1.0)
+    return main + thin
+
+
 def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False):
     """Linear radiance of pixel rows `row0 .. row0+rows` of one camera's image; with
     `pair` (symmetric plans only) also of their mirror rows `H-row0-rows .. H-row0`.
@@ -276,6 +500,8 @@ def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False):
     **Returns:** `(rows, W, 3)`, or `(2 rows, W, 3)` with `pair` (the block, then its
     mirror rows, each top to bottom), in the camera's dtype; captured rays are 0.
     """
+    if scene.camera.sampling == "gauss":
+        return _shade_cells(scene, plan, ray_map, row0, rows)
     scene = checked(scene)
     cam = scene.camera
     k, w = cam.supersample, cam.width

@@ -215,7 +215,24 @@ def _plan(scene, chunk_samples):
         )
     centred, at_origin = cam.is_centred(), cam.at_origin()
     has_disk = scene.disk is not None
-    symmetric = centred and aberration != "boost" and not has_disk
+    gauss = cam.sampling == "gauss"
+    if gauss:
+        if has_disk:
+            raise ValueError(
+                'sampling="gauss" does not support a Disk yet: render the disk with '
+                'sampling="uniform"'
+            )
+        if scene.method not in ("auto", "table"):
+            raise ValueError(
+                f'sampling="gauss" needs the ray-map table (its thin rings solve it), not '
+                f"method={scene.method!r}"
+            )
+        reasons.append(
+            f"area-exact sampling: {cam.supersample} x {cam.supersample} Gauss-Legendre "
+            "cells a pixel, the exact share of each outside the shadow edge, the thin rings "
+            "of compact sources integrated across the cells; the ray map is the geometry"
+        )
+    symmetric = centred and aberration != "boost" and not has_disk and not gauss
     if symmetric:
         reasons.append("centred view, rays depend on |x| and |y|: a quarter of the samples "
                        "go through the escape angle, mirrored")  # fmt: skip
@@ -235,7 +252,9 @@ def _plan(scene, chunk_samples):
                 b["frames"], b["rows"], b["pair"], b["blocks"], b["samples"], None, ())  # fmt: skip
 
     weak_bound = None
-    if scene.method != "auto":
+    if gauss:
+        geometry = "table"
+    elif scene.method != "auto":
         geometry = scene.method
         reasons.append(f"method={scene.method!r} forced by the scene")
     elif not concrete:

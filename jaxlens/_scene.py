@@ -12,6 +12,7 @@ fov_deg = 60.0             # horizontal field of view, degrees, in (0, 180)
 width = 960                # pixels
 height = 540
 supersample = 2            # k x k area samples a pixel
+sampling = "uniform"       # uniform | gauss (area-exact: Gauss-Legendre cells, exact edge)
 yaw_deg = 0.0              # view turned right (+x) ...
 pitch_deg = 0.0            # ... up (+y) ...
 roll_deg = 0.0             # ... and about the line of sight, degrees
@@ -58,7 +59,7 @@ from pathlib import Path
 import equinox as eqx
 
 from . import _schema
-from ._camera import Camera
+from ._camera import SAMPLINGS, Camera
 from ._disk import Disk
 from ._effects import AbstractMotion, Redshift
 from ._schema import Key, anything, greater, in_range
@@ -77,6 +78,7 @@ CAMERA_KEYS = {
     "width": Key("int", 960, in_range(0, 1 << 20), "a whole number from 1 to 1048575 (pixels)"),
     "height": Key("int", 540, in_range(0, 1 << 20), "a whole number from 1 to 1048575 (pixels)"),
     "supersample": Key("int", 2, in_range(0, 65), "a whole number from 1 to 64"),
+    "sampling": Key("str", "uniform", lambda v: v in SAMPLINGS, " | ".join(SAMPLINGS)),
     "yaw_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
     "pitch_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
     "roll_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
@@ -213,7 +215,7 @@ def _camera_of(cam: dict, *, dtype=None) -> Camera:
         cam["distance"], rad(cam["fov_deg"]), cam["width"], cam["height"],
         yaw=rad(cam["yaw_deg"]), pitch=rad(cam["pitch_deg"]), roll=rad(cam["roll_deg"]),
         azimuth=rad(cam["azimuth_deg"]), elevation=rad(cam["elevation_deg"]),
-        supersample=cam["supersample"], dtype=dtype,
+        supersample=cam["supersample"], sampling=cam["sampling"], dtype=dtype,
     )  # fmt: skip
 
 

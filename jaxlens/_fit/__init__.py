@@ -6,12 +6,13 @@ the hole at infinity, Gaussian in angular distance $d$ on the sky,
 $I = A e^{-d^2 / 2\\sigma^2}$; a uniform sky level `floor` lies behind everything;
 captured rays are 0; pixels are area-averaged; the noise is additive.
 
-The model image is radially symmetric, so each area sample needs only its local angle
-$\\alpha$: the escape angle comes from the ray map of the distance (`escape_table`, a
-`RayMap`, differentiable with respect to $D$), the angular distance from the source is
-$|(\\Phi \\bmod 2\\pi) - \\pi|$, and samples that straddle the shadow edge are weighted
-by the exact fraction of their square footprint outside the (locally straight) edge, so
-the edge contributes gradient with respect to $D$ and FOV. `optimistix.least_squares`
+The model image is the renderer's, with area-exact sampling (`Camera(...,
+sampling="gauss")`, the kernel's `cells`): the escape angle comes from the ray map of
+the distance (`escape_table`, a `RayMap`, differentiable with respect to $D$),
+Gauss-Legendre cells that straddle the shadow edge are weighted by the exact fraction
+of their footprint outside the (locally straight) edge, so the edge contributes
+gradient with respect to $D$ and FOV, and the relativistic rings enter by their
+integrated flux. `optimistix.least_squares`
 with Levenberg-Marquardt then solves for $\\log(D - 1.5)$,
 $\\operatorname{logit}(\\mathrm{FOV}/\\pi)$, $\\log\\sigma$, $A$, the floor and the
 relativistic rings' flux factor; standard errors come from the Gauss-Newton curvature

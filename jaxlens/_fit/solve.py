@@ -27,6 +27,11 @@ class _Setup(eqx.Module):
     coarse: int = eqx.field(static=True, default=0)
     k_coarse: int = eqx.field(static=True, default=2)
 
+    @property
+    def width(self) -> int:
+        """Width of the full image (pixels)."""
+        return round(2 * self.half_width)
+
 
 # The flux of the relativistic rings (order 1 and 2, radially a few thousandths of a
 # pixel wide) is a nuisance factor `ring_flux` (1: the exact area average), with a
@@ -63,10 +68,11 @@ def _model(theta, args, setup: _Setup):
     d, fov, sigma, a, floor, ring_flux = _unpack(theta, fixed_sigma, scale, setup)
     table = escape_table(d, knots=setup.knots)
     focal = setup.half_width / jnp.tan(0.5 * fov)
-    g, t, c = _pixel_basis(table, focal, sigma, x0, y0, block=setup.block, k=setup.k)
+    width = setup.width
+    g, t, c = _pixel_basis(table, focal, sigma, x0, y0, width=width, block=setup.block, k=setup.k)
     if setup.coarse:
         gc, tc, cc = _pixel_basis(
-            table, focal, sigma, *coarse, block=setup.coarse, k=setup.k_coarse
+            table, focal, sigma, *coarse, width=width, block=setup.coarse, k=setup.k_coarse
         )
         g, t, c = (jnp.concatenate(v) for v in ((g, gc), (t, tc), (c, cc)))
     return (a * (g + ring_flux * t) + floor * c) / scale

@@ -72,7 +72,9 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
 
         def basis(q):
             s_ = jnp.exp(q[1]) if setup.fit_sigma else sigma
-            g, t, cov = _pixel_basis(table, jnp.exp(q[0]), s_, x0, y0, block=setup.block, k=setup.k)
+            g, t, cov = _pixel_basis(
+                table, jnp.exp(q[0]), s_, x0, y0, width=setup.width, block=setup.block, k=setup.k
+            )
             g, cov = (g + t).ravel(), cov.ravel()
             return g, (g, cov)
 

@@ -1,6 +1,7 @@
 """Skies: what lies at infinity in each direction, one sky a module.
 
-`_base` holds the abstract bases (`AbstractSky`, `AbstractRGBSky`), `SkySum` and the
+`_base` holds the abstract bases (`AbstractSky`, `AbstractRGBSky`,
+`AbstractCompactSky`), `SkySum` and the
 direction and image helpers; each other module holds one sky and registers its
 scene-file table (`_schema.register("sky", ...)`), so importing this package
 registers every sky type.
@@ -9,6 +10,7 @@ registers every sky type.
 # The import order is the order in which scene-file errors list the sky types.
 # isort: off
 from ._base import (
+    AbstractCompactSky as AbstractCompactSky,
     AbstractRGBSky as AbstractRGBSky,
     AbstractSky as AbstractSky,
     SkySum as SkySum,

@@ -9,6 +9,8 @@ differentiated; skies add with `+`.
 The extension points are the two abstract methods of `AbstractSky`: `__call__` (rest
 radiance) and `shifted` (radiance seen with a frequency ratio). A sky without a
 spectrum subclasses `AbstractRGBSky`, which implements `shifted` once for all of them.
+A sky of one compact source subclasses `AbstractCompactSky` and also writes
+`crossing`, which lets area-exact sampling integrate its relativistic rings.
 """
 
 import abc
@@ -64,6 +66,30 @@ class AbstractRGBSky(AbstractSky):
     def shifted(self, n, g, mode):
         power = 4 if mode == "bolometric" else 3
         return (jnp.asarray(g, n.dtype) ** power)[..., None] * self(n)
+
+
+class AbstractCompactSky(AbstractRGBSky):
+    """A sky of one compact source (angular size $\\ll$ 1 rad) of plain RGB radiance.
+
+    Its images of order $\\ge 1$ (light that circles the hole once or more) are rings
+    a small fraction of a pixel wide, hugging the shadow edge, which point samples
+    alias. Area-exact sampling (`Camera(..., sampling="gauss")`) instead integrates the
+    source across each such ring: for the great circle a ray family sweeps it needs the
+    angle of closest approach and the integral of the radiance across it, which is
+    what `crossing` gives.
+    """
+
+    @abc.abstractmethod
+    def crossing(
+        self, e1: Float[Array, "... 3"], e3: Float[Array, "... 3"]
+    ) -> tuple[Float[Array, "..."], Float[Array, "... 3"]]:
+        """The source seen along the great circles $n(\\Phi) = \\sin\\Phi\\,e_1 +
+        \\cos\\Phi\\,e_3$ (`e1`, `e3` orthonormal world vectors `(..., 3)`).
+
+        **Returns:** `(phi0, integral)`: the angle $\\Phi_0 \\in [0, 2\\pi)$ (radians)
+        of the circle's closest approach to the source, and
+        $\\int I(n(\\Phi))\\, d\\Phi$ across it (RGB radiance times radians,
+        `(..., 3)`), in the dtype of `e1`."""
 
 
 class SkySum(AbstractSky):

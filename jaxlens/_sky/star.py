@@ -10,11 +10,11 @@ from jaxtyping import Array, ArrayLike, Float
 from .. import _schema
 from .._schema import Key, anything
 from .._util import as_float as _farray, concrete as _concrete
-from ._base import AbstractRGBSky, angular_distance, direction_from_angles, finite, positive
+from ._base import AbstractCompactSky, angular_distance, direction_from_angles, finite, positive
 from ._table import SIGMA
 
 
-class GaussianStar(AbstractRGBSky):
+class GaussianStar(AbstractCompactSky):
     """A star of Gaussian profile in angular distance $d$: $I = A e^{-d^2 / 2\\sigma^2}$.
 
     **Fields:** `sigma` (radians, standard deviation in great-circle angle),
@@ -64,6 +64,27 @@ class GaussianStar(AbstractRGBSky):
         d = angular_distance(n, self.direction.astype(dt))
         i = self.brightness.astype(dt) * jnp.exp(-0.5 * (d / self.sigma.astype(dt)) ** 2)
         return i[..., None] * self.color.astype(dt)
+
+    def crossing(self, e1, e3):
+        """Closest approach of the great circle $\\sin\\Phi\\,e_1 + \\cos\\Phi\\,e_3$
+        to the star and $\\int I\\,d\\Phi$ across it: $A \\sqrt{2\\pi}\\,\\sigma\\,
+        e^{-d_\\perp^2 / 2\\sigma^2}$ (RGB), $d_\\perp$ the star's angle from the circle
+        (the profile across the circle is Gaussian to $O(\\sigma^2)$)."""
+        dt = e1.dtype
+        s = self.direction.astype(dt)
+        a = jnp.sum(e1 * s, axis=-1)
+        b = jnp.sum(e3 * s, axis=-1)
+        c = jnp.sum(jnp.cross(e1, e3) * s, axis=-1)
+        # A star at the circle's pole (a = b = 0) is a quarter turn from all of it:
+        # keep the arctangents off their singular point (and their gradients finite).
+        pole = (a == 0) & (b == 0)
+        a, b = jnp.where(pole, 0.0, a), jnp.where(pole, 1.0, b)
+        phi0 = jnp.mod(jnp.arctan2(a, b), 2.0 * jnp.pi)
+        perp = jnp.where(pole, 0.5 * jnp.pi, jnp.arctan2(jnp.abs(c), jnp.sqrt(a * a + b * b)))
+        sigma = self.sigma.astype(dt)
+        peak = self.brightness.astype(dt) * math.sqrt(2.0 * math.pi) * sigma
+        integral = peak * jnp.exp(-0.5 * (perp / sigma) ** 2)
+        return phi0, integral[..., None] * self.color.astype(dt)
 
 
 @_schema.register(
