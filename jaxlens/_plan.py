@@ -292,7 +292,7 @@ def _plan(scene, chunk_samples):
         if concrete:
             total_rows = cam.height
             counts = [
-                int(_reach_count(one, base.kernel_key(), r0, b["rows"]))
+                int(_reach_count(one, base.kernel_key(), jnp.asarray(r0), b["rows"]))
                 for _, one in _frames(scene)
                 for _, r0 in starts(total_rows, b["rows"])
             ]
