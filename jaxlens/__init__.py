@@ -82,10 +82,12 @@ from ._effects import (
 )
 from ._fit import (
     RS_SUN_M as RS_SUN_M,
+    Fit as Fit,
     RingFit as RingFit,
     clipped_mean as clipped_mean,
     distance_in_metres as distance_in_metres,
     einstein_ring_angle as einstein_ring_angle,
+    fit as fit,
     fit_ring as fit_ring,
     mass_from_distance as mass_from_distance,
     read_observation as read_observation,

@@ -19,6 +19,8 @@ relativistic rings' flux factor; standard errors come from the Gauss-Newton curv
 $J^T J$ and the residual variance.
 """
 
+from .fit_result import Fit as Fit
+from .general import fit as fit
 from .model import ring_image as ring_image
 from .noise import clipped_mean as clipped_mean
 from .pixels import read_observation as read_observation

@@ -9,12 +9,11 @@ import numpy as np
 import optimistix as optx
 
 from .._exact import shadow_angle
-from .model import _pixel_edges, _samples_for
-from .noise import _clipping, _noise_clipped
-from .pixels import _as_gray, _bin, _pixel_sets
+from .model import _samples_for
+from .pixels import _as_gray, _pixel_sets
 from .result import RingFit, _diagnose, _result_name
 from .solve import _model, _pack, _Setup, _solve, _unpack
-from .starts import _candidate_losses, _from_init, _profile, _ring_candidates
+from .starts import _profile, ring_start
 from .table import _D_MIN
 
 
@@ -79,39 +78,7 @@ def fit_ring(
 
     with jax.enable_x64(True):
         # --- starting values: candidates along the ring relation on a binned image.
-        coarse = max(1, round(min(h, w) / 40))
-        cimg = _bin(img, coarse)
-        k0 = _samples_for(prof.ring_width, coarse)
-        setup0 = _Setup(0.5 * w, coarse, k0, 1024, fit_sigma)
-        x0c, y0c = _pixel_edges(w, h, coarse, jnp.float64)
-        # Stored values clipped at 0 (or 1) where the noise crossed them: the model is
-        # then the expected clipped value, with the noise of one original pixel.
-        lo, hi = _clipping(img)
-        noise = _noise_clipped(img, prof, lo, hi)
-        clip0 = jnp.asarray([lo, hi, noise]) / scale  # clipping acts per original pixel
-        args0 = (x0c, y0c, jnp.asarray(cimg), jnp.asarray(scale), clip0)
-        cands = _ring_candidates(prof, w, star_sigma)
-        extra = np.full((3, 3), np.nan)
-        extra[:, 1] = 1.0
-        if init is not None:
-            # Starting values in `init`: their own candidates only (the grid rows are skipped).
-            given = _from_init(init, prof, w, star_sigma)
-            extra[: len(given)] = given
-            cands[:, 0] = np.nan
-        cands = np.concatenate([extra, cands], axis=0)
-        if not np.any(np.isfinite(cands[:, 0])):
-            raise ValueError(
-                f"no camera distance puts an Einstein ring at {prof.ring_radius:.3g} pixels "
-                f"from the centre of a {w}-pixel-wide image"
-            )
-        halves = jnp.asarray([prof.inner_half, prof.outer_half])
-        loss, fovs, sig, amp, flo = (
-            np.asarray(v) for v in _candidate_losses(jnp.asarray(cands), halves, args0, setup0)
-        )
-        loss = np.where(np.isfinite(loss), loss, np.inf)
-        best = int(np.argmin(loss))
-        d_s, fov_s, sig_s = float(cands[best][0]), float(fovs[best]), float(sig[best])
-        a_s, fl_s = float(amp[best]), float(flo[best])
+        d_s, fov_s, sig_s, a_s, fl_s, lo, hi, noise = ring_start(img, prof, star_sigma, init, scale)
 
         # --- the fit: full resolution (or the finest level the ring needs) where the
         # image has structure, coarse blocks where it is flat.

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .model import _pixel_basis
-from .noise import _noise_level, clipped_mean, clipped_slope
+from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
 from .solve import _Setup
 from .table import escape_table, solve_with_slope
 
@@ -238,3 +238,50 @@ def _from_init(init, prof: _Profile, width: int, sigma):
     if a_e.min() < target < a_e.max():
         out.append((float(np.exp(np.interp(-target, -a_e, ld))), fov0, s0))
     return np.asarray(out, float)
+
+
+def ring_start(img, prof: _Profile, star_sigma, init, scale):
+    """Starting values of an Einstein-ring fit: candidates along the exact ring relation
+    (and from `init`), each refined on a binned image with D held, the best by loss.
+
+    **Returns:** `(distance, fov, sigma, brightness, floor, lo, hi, noise)`: R_S,
+    radians, radians, data units; the clipping bounds of the stored values and the
+    noise of one original pixel (data units).
+    """
+    from .model import _pixel_edges, _samples_for
+    from .pixels import _bin
+
+    h, w = img.shape
+    coarse = max(1, round(min(h, w) / 40))
+    cimg = _bin(img, coarse)
+    k0 = _samples_for(prof.ring_width, coarse)
+    setup0 = _Setup(0.5 * w, coarse, k0, 1024, star_sigma is None)
+    x0c, y0c = _pixel_edges(w, h, coarse, jnp.float64)
+    # Stored values clipped at 0 (or 1) where the noise crossed them: the model is
+    # then the expected clipped value, with the noise of one original pixel.
+    lo, hi = _clipping(img)
+    noise = _noise_clipped(img, prof, lo, hi)
+    clip0 = jnp.asarray([lo, hi, noise]) / scale  # clipping acts per original pixel
+    args0 = (x0c, y0c, jnp.asarray(cimg), jnp.asarray(scale), clip0)
+    cands = _ring_candidates(prof, w, star_sigma)
+    extra = np.full((3, 3), np.nan)
+    extra[:, 1] = 1.0
+    if init is not None:
+        # Starting values in `init`: their own candidates only (the grid rows are skipped).
+        given = _from_init(init, prof, w, star_sigma)
+        extra[: len(given)] = given
+        cands[:, 0] = np.nan
+    cands = np.concatenate([extra, cands], axis=0)
+    if not np.any(np.isfinite(cands[:, 0])):
+        raise ValueError(
+            f"no camera distance puts an Einstein ring at {prof.ring_radius:.3g} pixels "
+            f"from the centre of a {w}-pixel-wide image"
+        )
+    halves = jnp.asarray([prof.inner_half, prof.outer_half])
+    loss, fovs, sig, amp, flo = (
+        np.asarray(v) for v in _candidate_losses(jnp.asarray(cands), halves, args0, setup0)
+    )
+    loss = np.where(np.isfinite(loss), loss, np.inf)
+    best = int(np.argmin(loss))
+    d_s, fov_s, sig_s = float(cands[best][0]), float(fovs[best]), float(sig[best])
+    return d_s, fov_s, sig_s, float(amp[best]), float(flo[best]), lo, hi, noise

@@ -1,0 +1,123 @@
+"""The result of a general fit (`Fit`): values, standard errors, correlations, the
+residual image and the verdict."""
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .params import ANGLES, PARAMETERS
+from .units import mass_from_distance, schwarzschild_radius_m
+
+
+@dataclasses.dataclass(frozen=True)
+class Fit:
+    """Result of `fit`.
+
+    **Fields:**
+    - `scene`: the fitted `Scene` (the model, its free parameters at their values).
+    - `names`: the free parameters, in the order of `covariance`.
+    - `values`, `errors`: dicts of every fitted parameter's value and standard error
+      (units of `PARAMETERS`: R_S, radians, the image's linear units, pixels).
+    - `covariance`, `correlation`: of the free parameters (physical units), from the
+      Gauss-Newton curvature (the Laplace approximation) at the optimum.
+    - `start`: the starting values.
+    - `noise`: `"gaussian"` or `"poisson"`; `noise_sigma`: the per-pixel noise of the
+      image (data units; Gaussian), `gain` (counts per data unit; Poisson).
+    - `chi2_dof`: the residuals' sum of squares per degree of freedom, in units of the
+      noise (about 1 when the model describes the image to its noise).
+    - `model`, `residuals`: the model image and data - model on the compared pixel grid
+      (`block` x `block` bins of the image; NaN where masked).
+    - `n_pixels`, `block`, `supersample`: pixels compared, their binning, k.
+    - `result_name`, `num_steps`: the optimistix result and its steps.
+    - `converged`: the solve succeeded, the curvature is finite and invertible, no
+      parameter sits at a bound; `degenerate`: some parameters cannot be separated by
+      the image (named in `message`); `message`: "" when all is well.
+    - `seconds`: wall time, compile included.
+    """
+
+    scene: object
+    names: tuple
+    values: dict
+    errors: dict
+    covariance: np.ndarray
+    correlation: np.ndarray
+    start: dict
+    noise: str
+    noise_sigma: float
+    gain: float
+    chi2_dof: float
+    model: np.ndarray
+    residuals: np.ndarray
+    n_pixels: int
+    block: int
+    supersample: int
+    result_name: str
+    num_steps: int
+    converged: bool
+    degenerate: bool
+    message: str
+    seconds: float
+
+    def __getattr__(self, name):
+        # fit.distance, fit.distance_err, fit.fov_deg, ...
+        values, errors = self.__dict__["values"], self.__dict__["errors"]
+        if name in values:
+            return values[name]
+        if name.endswith("_err") and name[:-4] in errors:
+            return errors[name[:-4]]
+        for suffix in ("_deg", "_deg_err"):
+            base = name[: -len(suffix)] if name.endswith(suffix) else None
+            if base in ANGLES and base in values:
+                src = values if suffix == "_deg" else errors
+                return math.degrees(src[base])
+        raise AttributeError(name)
+
+    def distance_m(self, mass_msun: float) -> tuple[float, float]:
+        """Camera distance in metres, and its standard error, for a hole of `mass_msun`."""
+        rs = float(schwarzschild_radius_m(mass_msun))
+        return self.values["distance"] * rs, self.errors.get("distance", 0.0) * rs
+
+    def mass_msun(self, distance_m: float) -> tuple[float, float]:
+        """Mass of the hole (solar masses) for a camera `distance_m` metres away."""
+        m = float(mass_from_distance(self.values["distance"], distance_m))
+        return m, m * self.errors.get("distance", 0.0) / self.values["distance"]
+
+    def to_dict(self) -> dict:
+        """Plain values for JSON: every parameter and its `_err` (angles also in degrees
+        as `<name>_deg`), and the verdict."""
+        out = {}
+        for name, v in self.values.items():
+            e = self.errors.get(name, 0.0)
+            out[name], out[f"{name}_err"] = float(v), float(e)
+            if name in ANGLES:
+                out[f"{name}_deg"], out[f"{name}_deg_err"] = math.degrees(v), math.degrees(e)
+        out.update(
+            converged=self.converged, degenerate=self.degenerate, message=self.message,
+            noise=self.noise, noise_sigma=self.noise_sigma, gain=self.gain,
+            chi2_dof=self.chi2_dof, n_pixels=self.n_pixels, block=self.block,
+            supersample=self.supersample, result=self.result_name,
+            num_steps=self.num_steps, seconds=self.seconds,
+        )  # fmt: skip
+        return out
+
+    def summary(self) -> str:
+        """A table of the parameters with their standard errors, and the verdict."""
+        lines = []
+        for name, v in self.values.items():
+            unit = PARAMETERS[name].unit
+            e = self.errors.get(name, 0.0)
+            if name in ANGLES:
+                v, e, unit = math.degrees(v), math.degrees(e), "deg"
+            tag = "" if name in self.names else "  (fixed)"
+            lines.append(f"{name:<12} = {v:.6g} +- {e:.2g} {unit}{tag}")
+        verdict = "converged" if self.converged else "NOT converged"
+        if self.degenerate:
+            verdict += ", degenerate"
+        lines.append(
+            f"{verdict}; chi2/dof {self.chi2_dof:.3g}; {self.n_pixels} pixels (bins of "
+            f"{self.block}), k = {self.supersample}; {self.seconds:.1f} s"
+        )
+        if self.message:
+            lines.append(self.message)
+        return "\n".join(lines)

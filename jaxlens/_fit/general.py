@@ -1,0 +1,466 @@
+"""`fit`: any parameter of a scene fitted to an image through the renderer's area-exact
+sampling, with a point-spread function, Gaussian or Poisson noise and a mask."""
+
+import math
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .. import _kernel, _plan
+from .._camera import Camera
+from .._scene import Scene
+from . import psf as _psf
+from .model import _chunks, _pixel_edges
+from .noise import _clipping, _noise_level, clipped_mean
+from .params import PARAMETERS, apply, values_of
+from .result import _result_name
+from .table import escape_table
+
+DEFAULT_FREE = ("distance", "fov", "source_lon", "source_lat", "sigma", "brightness", "floor")
+_RING_FLUX_PRIOR = 1.0  # standard deviation of the prior N(1, .) on the thin rings' flux
+_CORRELATED = 0.95  # |correlation| above which two loose parameters are not separated
+
+
+class _Problem(eqx.Module):
+    """Static description of one fit: the free parameters, the pixel grid and the
+    model's settings."""
+
+    free: tuple = eqx.field(static=True)
+    fixed: tuple = eqx.field(static=True)  # (name, value) of non-scene fixed extras
+    block: int = eqx.field(static=True)
+    k: int = eqx.field(static=True)
+    pad: int = eqx.field(static=True)
+    shape: tuple = eqx.field(static=True)  # (rows, cols) of the compared grid
+    noise: str = eqx.field(static=True)
+    psf: str | None = eqx.field(static=True)  # None, "gaussian" or "image"
+    knots: int = eqx.field(static=True)
+
+
+def _physical(theta, prob: _Problem):
+    return {
+        n: PARAMETERS[n].transform.forward(theta[i]) for i, n in enumerate(prob.free)
+    } | dict(prob.fixed)
+
+
+def _model(theta, scene, grid, otf, prob: _Problem):
+    """Grey model image of the compared grid (before clipping), data units."""
+    p = _physical(theta, prob)
+    scene = apply(scene, {n: v for n, v in p.items() if PARAMETERS[n].where or "source" in n})
+    table = escape_table(scene.camera.distance, knots=prob.knots)
+    plan = _plan.plan(scene)
+    refs = _kernel.ring_references(table, table.phi.dtype)
+    x0, y0 = grid
+    n = x0.size
+    chunks, per = _chunks(n, prob.k, 1 << 16)
+    pad = chunks * per - n
+    xs = jnp.pad(x0.ravel(), (0, pad)).reshape(chunks, per)
+    ys = jnp.pad(y0.ravel(), (0, pad)).reshape(chunks, per)
+
+    def one(xy):
+        main, thin = _kernel.cells(scene, plan, table, xy[0], xy[1], prob.block, prob.k,
+                                   references=refs)  # fmt: skip
+        return jnp.mean(main, -1), jnp.mean(thin, -1)
+
+    main, thin = jax.lax.map(one, (xs, ys))
+    rf = p.get("ring_flux", 1.0)
+    img = (main + rf * thin).reshape(-1)[:n].reshape(x0.shape)
+    if prob.psf == "gaussian":
+        otf = _psf.gaussian_otf(img.shape, p["psf_sigma"] / prob.block)
+    if prob.psf is not None:
+        img = _psf.convolve(img, otf, pad=prob.pad)
+    return img
+
+
+def _residuals(theta, args, prob: _Problem):
+    return _residuals_model(theta, args, prob)[0]
+
+
+def _residuals_model(theta, args, prob: _Problem):
+    """The residuals (noise units; a last one for the ring-flux prior) and the model."""
+    scene, grid, otf, data, weight, clip, gain = args
+    m0 = m = _model(theta, scene, grid, otf, prob)
+    if prob.noise == "poisson":
+        # Deviance residuals: their squares sum to twice the negative log-likelihood
+        # of the counts (less its minimum), so least squares is the Poisson ML fit.
+        mu = jnp.maximum(gain * weight**2 * m, 1e-12)
+        y = gain * weight**2 * data
+        q = y / mu
+        d = q - 1.0
+        small = jnp.abs(d) < 1e-3
+        qs = jnp.where(small, 2.0, q)
+        ratio = jnp.where(
+            small,
+            1.0 - d / 3.0 + d * d / 6.0,
+            2.0 * (qs * jnp.log(jnp.maximum(qs, 1e-300)) - qs + 1.0) / (qs - 1.0) ** 2,
+        )
+        r = (y - mu) / jnp.sqrt(mu) * jnp.sqrt(jnp.maximum(ratio, 0.0))
+        r = jnp.where(weight > 0, r, 0.0)
+    else:
+        m = clipped_mean(m, clip[0], clip[1], clip[2])
+        r = weight * (m - data) / clip[3]
+    r = r.ravel()
+    if "ring_flux" in prob.free:
+        i = prob.free.index("ring_flux")
+        r = jnp.concatenate([r, (theta[i : i + 1] - 1.0) / _RING_FLUX_PRIOR])
+    return r, m0
+
+
+@eqx.filter_jit
+def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
+    def both(theta):
+        r, m = _residuals_model(theta, args, prob)
+        return r, (r, m)
+
+    @jax.custom_jvp
+    def fn(theta):  # residuals with a dense Jacobian (one forward-mode pass), the model
+        jac, (r, m) = jax.jacfwd(both, has_aux=True)(theta)
+        return r, jac, m
+
+    @fn.defjvp
+    def _jvp(primals, tangents):
+        (theta,), (dtheta,) = primals, tangents
+        r, jac, m = fn(theta)
+        return (r, jac, m), (jac @ dtheta, jnp.zeros_like(jac), jnp.zeros_like(m))
+
+    sol = optx.least_squares(
+        lambda th, _: (lambda r, jac, m: (r, (r, jac, m)))(*fn(th)),
+        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+        theta0,
+        has_aux=True,
+        max_steps=max_steps,
+        throw=False,
+    )
+    # The auxiliary output of the last accepted point but one: at termination that step
+    # is below the tolerances, so (r, J, model) are the optimum's to that accuracy.
+    r, jac, m = sol.aux
+    return sol.value, r, jac, m, sol.result, sol.stats["num_steps"]
+
+
+_loss = eqx.filter_jit(lambda theta, args, prob: jnp.sum(_residuals(theta, args, prob) ** 2))
+
+
+def _load(image):
+    """`(img, fits)`: the image as float64 `(H, W)` (channels averaged, NaN kept) and the
+    `FitsImage` when it came from a FITS file (else `None`)."""
+    from pathlib import Path
+
+    from .pixels import read_observation
+
+    fits = None
+    if isinstance(image, (str, Path)):
+        if str(image).lower().endswith((".fits", ".fit", ".fts", ".fits.gz")):
+            from .fits import read_fits
+
+            fits = read_fits(image)
+            img = fits.data
+        else:
+            img = read_observation(image)
+    else:
+        img = np.asarray(image, np.float64)
+    if img.ndim == 3:
+        img = img.mean(axis=-1)
+    if img.ndim != 2 or min(img.shape) < 8:
+        raise ValueError(f"image of shape {np.shape(img)} is not (H, W) or (H, W, C) of >= 8 px")
+    return np.asarray(img, np.float64), fits
+
+
+def _read_mask(mask, shape):
+    if mask is None:
+        return np.zeros(shape, bool)
+    if isinstance(mask, str) or hasattr(mask, "__fspath__"):
+        from .pixels import read_observation
+
+        mask = read_observation(mask) > 0.5
+    mask = np.asarray(mask, bool)
+    if mask.shape != shape:
+        raise ValueError(f"mask of shape {mask.shape} does not match the image {shape}")
+    return mask
+
+
+def _bins(img, valid, block):
+    """Bin means over the valid pixels, and the count of valid pixels in each bin."""
+    h, w = img.shape
+    hb, wb = h // block, w // block
+    r0, c0 = (h - hb * block) // 2, (w - wb * block) // 2
+    crop = np.where(valid, img, 0.0)[r0 : r0 + hb * block, c0 : c0 + wb * block]
+    cnt = valid[r0 : r0 + hb * block, c0 : c0 + wb * block]
+    s = crop.reshape(hb, block, wb, block).sum(axis=(1, 3))
+    n = cnt.reshape(hb, block, wb, block).sum(axis=(1, 3))
+    return np.where(n > 0, s / np.maximum(n, 1), 0.0), n
+
+
+def _gain_estimate(img, valid):
+    """Counts per data unit from the mean-variance relation of Poisson noise
+    (variance = mean / gain), over 8 x 8 tiles (robust variance from second
+    differences), the median of mean / variance over tiles with signal."""
+    h, w = img.shape
+    ratios = []
+    for r in range(0, h - 7, 8):
+        for c in range(0, w - 7, 8):
+            t, ok = img[r : r + 8, c : c + 8], valid[r : r + 8, c : c + 8]
+            if not ok.all():
+                continue
+            var = _noise_level(t) ** 2
+            mean = float(t.mean())
+            if var > 0 and mean > 0:
+                ratios.append(mean / var)
+    if not ratios:
+        raise ValueError("cannot estimate the gain (no tile with signal): give gain=")
+    return float(np.median(ratios))
+
+
+def _source_start(img, valid, floor, focal, ring_px):
+    """Azimuth (radians, image plane, 0 = +x toward +y) of the brighter arc and the
+    ring's asymmetry |first moment| / total in an annulus about the ring radius."""
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    x, y = xx + 0.5 - 0.5 * w, 0.5 * h - (yy + 0.5)
+    rho = np.hypot(x, y)
+    band = valid & (np.abs(rho - ring_px) < max(3.0, 0.3 * ring_px))
+    wgt = np.clip(img - floor, 0.0, None) * band
+    total = wgt.sum()
+    if total <= 0:
+        return 0.0, 0.0
+    c, s = (wgt * x / np.maximum(rho, 1e-9)).sum(), (wgt * y / np.maximum(rho, 1e-9)).sum()
+    return math.atan2(s, c), math.hypot(c, s) / total
+
+
+def fit(
+    scene: Scene,
+    image,
+    *,
+    free=DEFAULT_FREE,
+    psf=None,
+    noise="gaussian",
+    gain: float | None = None,
+    mask=None,
+    init: dict | None = None,
+    supersample: int = 3,
+    max_pixels: int = 65536,
+    knots: int = 4096,
+    rtol: float = 1e-6,
+    atol: float | None = None,
+    max_steps: int = 100,
+):
+    """Fit the parameters of a scene to an observed image.
+
+    The model is the scene rendered by area-exact sampling (`Camera(...,
+    sampling="gauss")`, Gauss-Legendre cells with the exact shadow-edge coverage and
+    the thin relativistic rings), averaged over the colour channels, optionally blurred
+    by a point-spread function (FFT, on a margin rendered around the frame), compared
+    with the image's pixels (or bins of them) under a noise model by
+    `optimistix.least_squares` (Levenberg-Marquardt) on unbounded internal parameters
+    (`jaxlens._fit.params` transforms: D > 1, 0 < FOV < pi, sigma > 0, ...). Errors
+    come from the Gauss-Newton curvature at the optimum (Laplace approximation).
+
+    **Arguments:**
+    - `scene`: the model `Scene` (its camera's width/height are replaced by the
+      image's). Its sky must hold a `GaussianStar` (the source) and, to fit `floor`, a
+      `Uniform`. Its values are the starting point for what `init` and the image do
+      not give.
+    - `image`: array `(H, W)` / `(H, W, C)` of linear values (NaN: masked), or a path
+      (FITS through astropy: the WCS pixel scale fixes the FOV; other formats read as
+      stored, integer formats normalised to [0, 1]).
+    - `free`: names of the parameters to fit: `distance`, `fov`, `yaw`, `pitch`,
+      `source_lon`, `source_lat`, `sigma`, `brightness`, `floor`, `psf_sigma`,
+      `ring_flux` (the thin rings' flux factor, with a prior N(1, 1), for images of
+      renderers that alias them).
+    - `psf`: `None`; a number (a Gaussian PSF of that width, pixels; fitted when
+      `psf_sigma` is in `free`, starting there); or a PSF image (array).
+    - `noise`: `"gaussian"` (sigma estimated from the image and the residuals), a
+      number (Gaussian of that sigma, data units), or `"poisson"` (counts = `gain` x
+      value; `gain` estimated from the image when not given).
+    - `mask`: bool array (True = bad pixel) or a mask image path (> 0.5 = bad).
+    - `init`: starting values by parameter name (physical units; `fov_deg` allowed).
+    - `supersample`: the Gauss-Legendre order k; `max_pixels`: bin the image until at
+      most this many pixels are compared; `knots`: of the ray map; `rtol`, `atol`,
+      `max_steps`: Levenberg-Marquardt settings.
+
+    **Returns:** a `Fit`.
+    """
+    t_start = time.perf_counter()
+    img, fits = _load(image)
+    h, w = img.shape
+    valid = np.isfinite(img) & ~_read_mask(mask, img.shape)
+    if fits is not None:
+        valid &= ~fits.mask
+    if valid.sum() < 64:
+        raise ValueError(f"only {int(valid.sum())} valid pixels: nothing to fit")
+    free = tuple(free)
+    for n in free:
+        if n not in PARAMETERS:
+            raise ValueError(f"unknown parameter {n!r}; choose from {', '.join(PARAMETERS)}")
+    init = dict(init or {})
+    if "fov_deg" in init:
+        init["fov"] = math.radians(init.pop("fov_deg"))
+    if fits is not None and fits.fov is not None and "fov" not in init:
+        init["fov"] = fits.fov
+        free = tuple(n for n in free if n != "fov")  # the WCS fixes it
+    psf_kind = None
+    if psf is not None:
+        psf_kind = "image" if np.ndim(psf) == 2 else "gaussian"
+    if "psf_sigma" in free and psf_kind != "gaussian":
+        raise ValueError("psf_sigma is fitted only for a Gaussian PSF: give psf=<width in px>")
+    gray = np.where(valid, img, np.nanmedian(img[valid]))
+    lo, hi = _clipping(gray)
+    noise_sigma = float(noise) if isinstance(noise, (int, float)) else _noise_level(gray)
+    kind = "poisson" if noise == "poisson" else "gaussian"
+    if kind == "poisson" and gain is None:
+        gain = _gain_estimate(img, valid)
+
+    with jax.enable_x64(True):
+        cam0 = scene.camera
+        k = int(supersample)
+        base = values_of(scene)
+        cam = Camera(base["distance"], base["fov"], w, h, yaw=cam0.yaw, pitch=cam0.pitch,
+                     roll=cam0.roll, supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
+        sky = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), scene.sky)
+        model_scene = Scene(cam, sky)
+        start = values_of(model_scene) | {"psf_sigma": float(psf) if psf_kind == "gaussian"
+                                          else 1.0, "ring_flux": 1.0}  # fmt: skip
+        # --- starting values from the image where init does not give them.
+        from . import starts as _starts
+
+        prof = _starts._profile(gray)
+        scale = max(prof.peak + prof.floor, 1e-12)
+        ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
+        if ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
+            sig = None if "sigma" in free else start["sigma"]
+            ring_init = {n: init[n] for n in ("distance", "fov", "sigma") if n in init} or None
+            d_s, fov_s, sig_s, a_s, fl_s, *_ = _starts.ring_start(gray, prof, sig, ring_init, scale)
+            guess = {"distance": d_s, "fov": fov_s, "sigma": sig_s, "brightness": a_s,
+                     "floor": fl_s}  # fmt: skip
+            start |= {n: v for n, v in guess.items() if n in free}
+        start |= init
+        # --- the compared grid: bins of `block`, a margin for the PSF.
+        block = 1
+        while (h // block) * (w // block) > max_pixels:
+            block += 1
+        data, count = _bins(gray, valid, block)
+        if psf_kind == "gaussian":
+            pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // block)
+        elif psf_kind == "image":
+            pad = -(-(max(np.shape(psf)) // 2 + 1) // block)
+        else:
+            pad = 0
+        x0, y0 = (np.asarray(v) for v in _pixel_edges(w, h, block, np.float64))
+        xs = x0[0, 0] + block * np.arange(-pad, x0.shape[1] + pad)
+        ys = y0[0, 0] - block * np.arange(-pad, y0.shape[0] + pad)
+        grid = tuple(jnp.asarray(v) for v in np.meshgrid(xs, ys))
+        otf = None
+        if psf_kind == "image":
+            otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
+        extras = ("ring_flux", "psf_sigma") if psf_kind == "gaussian" else ("ring_flux",)
+        fixed = tuple((n, float(start[n])) for n in extras if n not in free)
+        prob = _Problem(free, fixed, block, k, pad, data.shape, kind, psf_kind, int(knots))
+        weight = np.sqrt(count).astype(np.float64)
+        # Clipping acts on each original pixel, with its own noise.
+        clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
+        args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(weight), clip,
+                jnp.asarray(gain if gain is not None else 1.0))  # fmt: skip
+        theta0 = np.asarray([PARAMETERS[n].transform.inverse(start[n]) for n in free])
+        # --- the source: the azimuth of the brighter arc, its offset by a scan.
+        if {"source_lon", "source_lat"} <= set(free) and not ({"source_lon", "source_lat"}
+                                                              & set(init)):  # fmt: skip
+            f_px = 0.5 * w / math.tan(0.5 * start["fov"])
+            psi, asym = _source_start(gray, valid, start.get("floor", 0.0), f_px,
+                                      prof.ring_radius)  # fmt: skip
+            i_lon, i_lat = free.index("source_lon"), free.index("source_lat")
+            offsets = [0.0] + list(np.geomspace(0.05, 6.0, 15) * math.pi / 180.0)
+            cands = np.repeat(theta0[None], len(offsets), axis=0)
+            cands[:, i_lon] = np.asarray(offsets) * math.cos(psi)
+            cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
+            losses = [float(_loss(jnp.asarray(c), args, prob)) for c in cands]
+            theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
+        if atol is None:
+            atol = 1e-6
+        theta, r, jac, model, result, steps = _solve(
+            jnp.asarray(theta0), args, prob, jnp.asarray(rtol), jnp.asarray(atol), int(max_steps)
+        )
+        theta, r = np.asarray(theta), np.asarray(r).ravel()
+        jac = np.asarray(jac).reshape(r.size, -1)
+        model = np.asarray(model)
+        phys = {n: float(PARAMETERS[n].transform.forward(theta[i])) for i, n in enumerate(free)}
+        fitted = apply(model_scene, {n: v for n, v in phys.items()
+                                     if PARAMETERS[n].where or "source" in n})  # fmt: skip
+    return _finish(fitted, free, phys, start, theta, r, jac, result, steps, model, data, count,
+                   kind, noise_sigma, gain, block, k, prob, t_start,
+                   isinstance(noise, (int, float)))  # fmt: skip
+
+
+def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data, count, kind,
+            noise_sigma, gain, block, k, prob, t_start, sigma_known=False):  # fmt: skip
+    from .fit_result import Fit
+
+    prior = 1 if "ring_flux" in free else 0
+    n_data = int((count > 0).sum())
+    p = len(free)
+    rss = float(np.sum(r[: r.size - prior] ** 2))
+    chi2_dof = rss / max(n_data - p, 1)
+    jtj = jac.T @ jac
+    finite = bool(np.all(np.isfinite(jtj)) and np.all(np.isfinite(theta)))
+    cov_int, cond = np.full((p, p), np.nan), math.inf
+    if finite:
+        ds = np.sqrt(np.diag(jtj))
+        if np.all(ds > 0):
+            norm = jtj / np.outer(ds, ds)
+            ev = np.linalg.eigvalsh(norm)
+            cond = float(ev[-1] / max(ev[0], 1e-300))
+            cov_int = np.linalg.pinv(norm) / np.outer(ds, ds)
+    # Gaussian noise estimated from the image: the residuals set its scale.
+    s2 = chi2_dof if kind == "gaussian" and not sigma_known else 1.0
+    g = np.diag([PARAMETERS[n].transform.slope(phys[n]) for n in free])
+    cov = g @ cov_int @ g.T * s2
+    err = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(err, err)
+    import optimistix as optx
+
+    ok = bool(result == optx.RESULTS.successful)
+    notes, degenerate = [], False
+    if not ok:
+        notes.append(f"the solver stopped: {_result_name(result)}")
+    at_bound = [n for n in free if PARAMETERS[n].transform.at_bound(phys[n])]
+    if at_bound:
+        notes.append("at the bound of its range: " + ", ".join(at_bound))
+    # Two parameters are not separated when they are strongly correlated and the image
+    # leaves both loose (relative errors above 20 %); D and FOV, always correlated,
+    # are separated by the ring and the shadow as long as their errors are small.
+    rel = [err[i] / max(abs(phys[n]), 1e-300) for i, n in enumerate(free)]
+    pairs = [(free[i], free[j], corr[i, j]) for i in range(p) for j in range(i + 1, p)
+             if np.isfinite(corr[i, j]) and abs(corr[i, j]) > _CORRELATED
+             and min(rel[i], rel[j]) > 0.2]  # fmt: skip
+    if pairs or not math.isfinite(cond) or cond > 1e14:
+        degenerate = True
+        if pairs:
+            notes.append("the image cannot separate " + "; ".join(
+                f"{a} and {b} (correlation {c:+.3f})" for a, b, c in pairs))  # fmt: skip
+        else:
+            notes.append(f"the curvature is singular (condition {cond:.2g})")
+    if kind == "gaussian" and chi2_dof > 4.0:
+        notes.append(f"residuals {math.sqrt(chi2_dof):.2g} times the image's noise: the model "
+                     "does not describe the image")  # fmt: skip
+    elif kind == "poisson" and chi2_dof > 2.0:
+        notes.append(f"deviance {chi2_dof:.3g} per degree of freedom: the counts are not "
+                     "Poisson about the model (gain, background?)")  # fmt: skip
+    converged = ok and finite and bool(np.all(np.isfinite(err))) and not at_bound
+    values = {**start, **phys}
+    values = {n: float(v) for n, v in values.items()
+              if n in free or n in ("distance", "fov", "source_lon", "source_lat", "sigma")}
+    errors = {n: float(e) for n, e in zip(free, err)}
+    pad = prob.pad
+    model_c = model[pad : model.shape[0] - pad, pad : model.shape[1] - pad] if pad else model
+    resid = np.where(count > 0, data - model_c, np.nan)
+    return Fit(
+        scene=scene, names=free, values=values, errors=errors, covariance=cov,
+        correlation=corr, start={n: float(v) for n, v in start.items()}, noise=kind,
+        noise_sigma=float(noise_sigma), gain=float(gain) if gain is not None else math.nan,
+        chi2_dof=float(chi2_dof), model=model_c, residuals=resid, n_pixels=n_data,
+        block=block, supersample=k, result_name=_result_name(result), num_steps=int(steps),
+        converged=bool(converged), degenerate=degenerate, message="; ".join(notes),
+        seconds=time.perf_counter() - t_start,
+    )  # fmt: skip
