@@ -1,4 +1,5 @@
-"""`jaxlens fit`: the camera distance and field of view from an image of an Einstein ring."""
+"""`jaxlens fit`: the camera distance, field of view and source position from an image of
+a lensed star (a ring, or arcs from a star off the axis)."""
 
 import json
 import math
@@ -21,12 +22,45 @@ def _positive(name):
 def register(sub):
     p = sub.add_parser(
         "fit",
-        help="fit distance and field of view to an image of an Einstein ring",
-        description="Fit the camera distance (units of R_S) and horizontal field of view to "
-        "an image of a star exactly behind the hole (linear pixel values; integer formats "
-        "read as stored, normalised to [0, 1]; channels averaged).",
+        help="fit distance, field of view and source position to an image of a lensed star",
+        description="Fit the camera distance (units of R_S), horizontal field of view and the "
+        "star's position to an image of a lensed Gaussian star: a ring, or arcs from a star "
+        "off the axis (linear pixel values; integer formats read as stored, normalised to "
+        "[0, 1]; channels averaged; FITS through astropy, its WCS fixing the field of view).",
     )
-    p.add_argument("image", help="the image (PNG, EXR, TIFF, ...)")
+    p.add_argument("image", help="the image (PNG, EXR, TIFF, FITS, ...)")
+    blur = p.add_mutually_exclusive_group()
+    blur.add_argument(
+        "--psf-sigma-px",
+        type=str,
+        default=None,
+        help="a Gaussian point-spread function of this width (pixels)",
+    )
+    blur.add_argument("--psf", default=None, help="a point-spread function image (file)")
+    blur.add_argument(
+        "--fit-psf", action="store_true", help="fit the width of a Gaussian point-spread function"
+    )
+    p.add_argument(
+        "--noise",
+        choices=("gaussian", "poisson"),
+        default="gaussian",
+        help="noise model (default gaussian, sigma estimated)",
+    )
+    p.add_argument(
+        "--gain",
+        type=str,
+        default=None,
+        help="Poisson: counts per unit of pixel value (estimated if not given)",
+    )
+    p.add_argument("--mask", default=None, help="mask image: pixels > 0.5 are left out")
+    p.add_argument(
+        "--fix",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="hold a parameter (distance, fov_deg, source_lon_deg, source_lat_deg, "
+        "sigma_deg, brightness, floor, ...) at a value; repeatable",
+    )
     p.add_argument(
         "--star-sigma-deg",
         type=str,
@@ -54,11 +88,45 @@ def run(args):
     mass = _positive("--mass")(args.mass) if args.mass is not None else None
     dist_m = _positive("--distance-m")(args.distance_m) if args.distance_m is not None else None
 
-    from ._fit import fit_ring
+    from ._camera import Camera
+    from ._fit import DEFAULT_FREE, PARAMETERS, fit as fit_scene
+    from ._scene import Scene
+    from ._sky import GaussianStar, Uniform
 
-    if sys.stderr.isatty():  # a fit is silent for ~20 s, most of it compiling
+    psf, free = None, list(DEFAULT_FREE)
+    if args.psf_sigma_px is not None:
+        psf = _positive("--psf-sigma-px")(args.psf_sigma_px)
+    elif args.fit_psf:
+        psf = 1.0
+        free.append("psf_sigma")
+    elif args.psf is not None:
+        from ._fit.pixels import read_observation
+
+        psf = read_observation(args.psf)
+    init = {}
+    if sigma is not None:
+        init["sigma"] = sigma
+        free.remove("sigma")
+    for item in args.fix:
+        name, sep, text = item.partition("=")
+        name = name.strip()
+        value = _finite_number(f"--fix {item}", text) if sep else None
+        if value is None:
+            raise ValueError(f"--fix {item!r} is not NAME=VALUE")
+        if name.endswith("_deg"):
+            name, value = name[:-4], math.radians(value)
+        if name not in PARAMETERS:
+            raise ValueError(f"--fix {item!r}: unknown parameter {name!r}; choose from "
+                             f"{', '.join(PARAMETERS)}")  # fmt: skip
+        init[name] = value
+        if name in free:
+            free.remove(name)
+    gain = _positive("--gain")(args.gain) if args.gain is not None else None
+    if sys.stderr.isatty():  # a fit is silent for ~30 s, most of it compiling
         print(f"jaxlens fit: fitting {args.image} (compiling on first use) ...", file=sys.stderr)
-    fit = fit_ring(args.image, star_sigma=sigma)
+    model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
+    fit = fit_scene(model, args.image, free=free, psf=psf, noise=args.noise, gain=gain,
+                    mask=args.mask, init=init or None)  # fmt: skip
     out = fit.to_dict()
     lines = [f"fit of {args.image}", fit.summary()]
     if mass is not None:
@@ -74,6 +142,16 @@ def run(args):
     else:
         print("\n".join(lines))
     return 0
+
+
+def _finite_number(what, text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{what}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{what}: {text!r} must be finite")
+    return value
 
 
 def _finite(d):

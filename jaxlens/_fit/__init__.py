@@ -20,9 +20,10 @@ $J^T J$ and the residual variance.
 """
 
 from .fit_result import Fit as Fit
-from .general import fit as fit
+from .general import DEFAULT_FREE as DEFAULT_FREE, fit as fit
 from .model import ring_image as ring_image
 from .noise import clipped_mean as clipped_mean
+from .params import PARAMETERS as PARAMETERS
 from .pixels import read_observation as read_observation
 from .result import RingFit as RingFit
 from .ring import fit_ring as fit_ring

@@ -20,7 +20,16 @@ from .params import PARAMETERS, apply, values_of
 from .result import _result_name
 from .table import escape_table
 
-DEFAULT_FREE = ("distance", "fov", "source_lon", "source_lat", "sigma", "brightness", "floor")
+DEFAULT_FREE = (
+    "distance",
+    "fov",
+    "source_lon",
+    "source_lat",
+    "sigma",
+    "brightness",
+    "floor",
+    "ring_flux",
+)
 _RING_FLUX_PRIOR = 1.0  # standard deviation of the prior N(1, .) on the thin rings' flux
 _CORRELATED = 0.95  # |correlation| above which two loose parameters are not separated
 
@@ -41,9 +50,9 @@ class _Problem(eqx.Module):
 
 
 def _physical(theta, prob: _Problem):
-    return {
-        n: PARAMETERS[n].transform.forward(theta[i]) for i, n in enumerate(prob.free)
-    } | dict(prob.fixed)
+    return {n: PARAMETERS[n].transform.forward(theta[i]) for i, n in enumerate(prob.free)} | dict(
+        prob.fixed
+    )
 
 
 def _model(theta, scene, grid, otf, prob: _Problem):
@@ -239,7 +248,7 @@ def fit(
     gain: float | None = None,
     mask=None,
     init: dict | None = None,
-    supersample: int = 3,
+    supersample: int | None = None,
     max_pixels: int = 65536,
     knots: int = 4096,
     rtol: float = 1e-6,
@@ -276,9 +285,10 @@ def fit(
       value; `gain` estimated from the image when not given).
     - `mask`: bool array (True = bad pixel) or a mask image path (> 0.5 = bad).
     - `init`: starting values by parameter name (physical units; `fov_deg` allowed).
-    - `supersample`: the Gauss-Legendre order k; `max_pixels`: bin the image until at
-      most this many pixels are compared; `knots`: of the ray map; `rtol`, `atol`,
-      `max_steps`: Levenberg-Marquardt settings.
+    - `supersample`: the Gauss-Legendre order k (default: from the ring's width in the
+      compared bins, the smallest k averaging its Gaussian to ~4e-5 of its peak);
+      `max_pixels`: bin the image until at most this many pixels are compared;
+      `knots`: of the ray map; `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings.
 
     **Returns:** a `Fit`.
     """
@@ -314,7 +324,14 @@ def fit(
 
     with jax.enable_x64(True):
         cam0 = scene.camera
-        k = int(supersample)
+        block = 1
+        while (h // block) * (w // block) > max_pixels:
+            block += 1
+        from . import starts as _starts
+        from .model import _samples_for
+
+        prof = _starts._profile(gray)
+        k = int(supersample) if supersample is not None else _samples_for(prof.ring_width, block)
         base = values_of(scene)
         cam = Camera(base["distance"], base["fov"], w, h, yaw=cam0.yaw, pitch=cam0.pitch,
                      roll=cam0.roll, supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
@@ -323,23 +340,23 @@ def fit(
         start = values_of(model_scene) | {"psf_sigma": float(psf) if psf_kind == "gaussian"
                                           else 1.0, "ring_flux": 1.0}  # fmt: skip
         # --- starting values from the image where init does not give them.
-        from . import starts as _starts
-
-        prof = _starts._profile(gray)
         scale = max(prof.peak + prof.floor, 1e-12)
         ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
         if ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
-            sig = None if "sigma" in free else start["sigma"]
-            ring_init = {n: init[n] for n in ("distance", "fov", "sigma") if n in init} or None
+            sig = None if "sigma" in free else init.get("sigma", start["sigma"])
+            ring_init = None
+            if "distance" in init and "fov" in init:
+                ring_init = {n: init[n] for n in ("distance", "fov", "sigma") if n in init}
             d_s, fov_s, sig_s, a_s, fl_s, *_ = _starts.ring_start(gray, prof, sig, ring_init, scale)
             guess = {"distance": d_s, "fov": fov_s, "sigma": sig_s, "brightness": a_s,
                      "floor": fl_s}  # fmt: skip
             start |= {n: v for n, v in guess.items() if n in free}
         start |= init
+        # Values given for parameters held fixed are the model's.
+        held = {n: v for n, v in init.items() if n not in free}
+        model_scene = apply(model_scene, {n: v for n, v in held.items()
+                                          if PARAMETERS[n].where or "source" in n})  # fmt: skip
         # --- the compared grid: bins of `block`, a margin for the PSF.
-        block = 1
-        while (h // block) * (w // block) > max_pixels:
-            block += 1
         data, count = _bins(gray, valid, block)
         if psf_kind == "gaussian":
             pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // block)
@@ -449,8 +466,11 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
                      "Poisson about the model (gain, background?)")  # fmt: skip
     converged = ok and finite and bool(np.all(np.isfinite(err))) and not at_bound
     values = {**start, **phys}
-    values = {n: float(v) for n, v in values.items()
-              if n in free or n in ("distance", "fov", "source_lon", "source_lat", "sigma")}
+    values = {
+        n: float(v)
+        for n, v in values.items()
+        if n in free or n in ("distance", "fov", "source_lon", "source_lat", "sigma")
+    }
     errors = {n: float(e) for n, e in zip(free, err)}
     pad = prob.pad
     model_c = model[pad : model.shape[0] - pad, pad : model.shape[1] - pad] if pad else model
