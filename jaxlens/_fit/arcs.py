@@ -20,8 +20,9 @@ $D = 15$, $-2.5$ at $D = 5$, so $c$ is fitted. The star is a Gaussian of width $
 $b\\,(\\cos\\psi, \\sin\\psi)$; the image is
 $\\mathrm{floor} + A\\,e^{-|S - B|^2 / 2 w^2}$, times a dark disc (the shadow) of
 radius $R_{sh}$ about the centre when the floor shows one, averaged over $2 \\times 2$
-samples a pixel. The primary and secondary images then lie on one line through the
-centre; their radii along $\\psi$ and $\\psi + \\pi$ solve $s(\\rho) = \\pm b$.
+area samples a pixel (more for rings narrower than 0.6 pixel). The primary and
+secondary images then lie on one line through the centre; their radii along $\\psi$
+and $\\psi + \\pi$ solve $s(\\rho) = \\pm b$.
 """
 
 import math
@@ -32,9 +33,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-_K = 2  # area samples a pixel side in the model
 _EDGE = 0.25  # width of the shadow's edge in the model (pixels)
-_C_MIN, _C_MAX = -2.95, -0.6  # range of the shape c (m, n > 0 needs -3 < c < 1)
+# Range of the shape c: m, n > 0 needs -3 < c < 1; the exact map has c <= -1 (c -> -1
+# far from the hole), and c > -1 would let a lone arc pass for the other one.
+_C_MIN, _C_MAX = -2.95, -0.6
+_C_MID, _C_HALF = 0.5 * (_C_MIN + _C_MAX), 0.5 * (_C_MAX - _C_MIN)
 
 
 class ArcGuess(eqx.Module):
@@ -158,56 +161,72 @@ def _circle_fit(x, y, wt):
 # ----------------------------------------------------------------------- the model
 
 
-def _shape_mn(raw):
-    c = 0.5 * (_C_MIN + _C_MAX) + 0.5 * (_C_MAX - _C_MIN) * jnp.tanh(raw)
-    return c, 0.5 * (3.0 + c), 0.5 * (1.0 - c)
+def _shape_c(raw, xp=np):
+    """The shape c of its raw parameter: c in (_C_MIN, _C_MAX) through tanh."""
+    return _C_MID + _C_HALF * xp.tanh(raw)
 
 
 def _shape_raw(c: float) -> float:
-    u = (c - 0.5 * (_C_MIN + _C_MAX)) / (0.5 * (_C_MAX - _C_MIN))
-    return float(np.arctanh(np.clip(u, -0.999, 0.999)))
+    return float(np.arctanh(np.clip((c - _C_MID) / _C_HALF, -0.999, 0.999)))
 
 
-def _s_of_rho(rho, r, raw):
-    _, m, n = _shape_mn(raw)
-    t = jnp.log(rho / r)
-    return 0.5 * r * (jnp.exp(m * t) - jnp.exp(-n * t))
+def _s_np(rho, r, c):
+    """$s(\\rho)$ of the module docstring (numpy; pixels)."""
+    m, n = 0.5 * (3.0 + c), 0.5 * (1.0 - c)
+    t = np.log(rho / r)
+    return 0.5 * r * (np.exp(m * t) - np.exp(-n * t))
 
 
-def _model_px(p, xs, ys, shadow: bool):
-    """Model at the area samples `xs`, `ys` (pixels, shape (P, K*K)), averaged a pixel.
-
-    `p`: x_c, y_c, ln R, b_x, b_y, ln w, shape (raw), A, floor[, R_sh]."""
+def _model(p, xs, ys, *, jac: bool = False, xp=np):
+    """The model at area samples `xs`, `ys` (pixels, shape (P, k*k)), averaged a pixel,
+    and with `jac` its Jacobian (P, 10) with respect to `p`: x_c, y_c, ln R, b_x, b_y,
+    ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5 px: no shadow).
+    `xp`: numpy or jax.numpy."""
     dx, dy = xs - p[0], ys - p[1]
-    rho = jnp.sqrt(dx * dx + dy * dy + 1e-12)
-    r = jnp.exp(p[2])
-    s = _s_of_rho(rho, r, p[6])
-    ex, ey = s * dx / rho - p[3], s * dy / rho - p[4]
-    g = jnp.exp(-0.5 * (ex * ex + ey * ey) * jnp.exp(-2.0 * p[5]))
-    val = p[8] + p[7] * g
-    if shadow:
-        val = val * jax.nn.sigmoid((rho - p[9]) / _EDGE)
-    return val.mean(axis=-1)
-
-
-@eqx.filter_jit
-def _residual(p, xs, ys, data, weight, shadow: bool):
-    return (_model_px(p, xs, ys, shadow) - data) * weight
-
-
-@eqx.filter_jit
-def _jacobian(p, xs, ys, data, weight, shadow: bool):
-    return jax.jacfwd(lambda q: _residual(q, xs, ys, data, weight, shadow))(p)
-
-
-def _pad(n: int) -> int:
-    """Padded length (few distinct sizes, so the compiled model is reused)."""
-    return int(2 ** math.ceil(math.log2(max(n, 256))))
+    rho = xp.sqrt(dx * dx + dy * dy + 1e-12)
+    ux, uy = dx / rho, dy / rho
+    r = xp.exp(p[2])
+    c = _shape_c(p[6], xp)
+    m, n = 0.5 * (3.0 + c), 0.5 * (1.0 - c)
+    t = xp.log(rho) - p[2]
+    em, en = xp.exp(m * t), xp.exp(-n * t)
+    s = 0.5 * r * (em - en)
+    ex, ey = s * ux - p[3], s * uy - p[4]
+    iw2 = xp.exp(-2.0 * p[5])
+    q = 0.5 * (ex * ex + ey * ey) * iw2
+    g = xp.exp(-q)
+    sh = 1.0 / (1.0 + xp.exp(-(rho - p[9]) / _EDGE))
+    base = p[8] + p[7] * g
+    val = (base * sh).mean(axis=-1)
+    if not jac:
+        return val
+    sp = 0.5 * r * (m * em + n * en) / rho  # ds/drho
+    # d(value)/d(e_x, e_y) through g, and d(value)/d(rho) through the shadow's edge
+    ag = -p[7] * g * sh * iw2
+    vx, vy = ag * ex, ag * ey
+    dsh = base * sh * (1.0 - sh) / _EDGE
+    cols = [
+        vx * (-sp * ux * ux - s * uy * uy / rho)
+        + vy * (-sp * ux * uy + s * ux * uy / rho)
+        - dsh * ux,
+        vx * (-sp * ux * uy + s * ux * uy / rho)
+        + vy * (-sp * uy * uy - s * ux * ux / rho)
+        - dsh * uy,
+        (vx * ux + vy * uy) * (s - 0.5 * r * (m * em + n * en)),
+        -vx,
+        -vy,
+        p[7] * g * sh * 2.0 * q,
+        (vx * ux + vy * uy) * 0.5 * s * t * _C_HALF * (1.0 - xp.tanh(p[6]) ** 2),
+        g * sh,
+        sh,
+        -dsh,
+    ]
+    return val, xp.stack([col.mean(axis=-1) for col in cols], axis=-1)
 
 
 class _Data(eqx.Module):
-    """Pixels a fit compares: area-sample coordinates (P, K*K, pixels), values, weights
-    (padding has weight 0)."""
+    """Pixels a fit compares: area-sample coordinates `xs`, `ys` (P, k*k; pixels), the
+    values and the residual weights (P,)."""
 
     xs: np.ndarray
     ys: np.ndarray
@@ -215,76 +234,45 @@ class _Data(eqx.Module):
     weight: np.ndarray
 
 
-def _data(x, y, v, side: float = 1.0, weight=None) -> _Data:
-    """Pixels (or bins) of side `side` centred at x, y with values v."""
-    n = x.size
-    size = _pad(n)
-    off = ((np.arange(_K) + 0.5) / _K - 0.5) * side
+def _data(x, y, v, side: float = 1.0, weight=None, k: int = 2) -> _Data:
+    """Pixels (or bins) of side `side` (pixels) centred at x, y with values v, k x k
+    area samples each."""
+    off = ((np.arange(k) + 0.5) / k - 0.5) * side
     ox, oy = np.meshgrid(off, off)
-    xp, yp = np.pad(x, (0, size - n)), np.pad(y, (0, size - n))
-    wt = np.ones(n) if weight is None else weight
-    return _Data(
-        xp[:, None] + ox.ravel()[None],
-        yp[:, None] - oy.ravel()[None],
-        np.pad(v, (0, size - n)),
-        np.pad(wt, (0, size - n)),
-    )
+    wt = np.ones(x.size) if weight is None else np.asarray(weight, float)
+    return _Data(x[:, None] + ox.ravel()[None], y[:, None] - oy.ravel()[None], v, wt)
 
 
-def _lm(p0, d: _Data, shadow: bool, lower, upper, *, steps: int = 60, rtol: float = 1e-8):
+def _lm(p0, d: _Data, lower, upper, tol: float, *, steps: int = 80):
     """Levenberg-Marquardt (Marquardt's diagonal scaling) with the parameters clipped
-    to [lower, upper]; stops when a step lowers the cost by less than `rtol` of it.
+    to [lower, upper]; stops when a step lowers the cost by less than `tol` (image
+    units squared: a fraction of the noise variance is a fraction of one in $\\chi^2$).
 
     **Returns:** the parameters and the residual sum of squares."""
-    args = tuple(jnp.asarray(v) for v in (d.xs, d.ys, d.data, d.weight))
-    with jax.enable_x64(True):
 
-        def res(p):
-            return np.asarray(_residual(jnp.asarray(p), *args, shadow))
+    def ev(p):
+        val, j = _model(p, d.xs, d.ys, jac=True)
+        return (val - d.data) * d.weight, j * d.weight[:, None]
 
-        def jac(p):
-            return np.asarray(_jacobian(jnp.asarray(p), *args, shadow))
-
-        p = np.clip(np.asarray(p0, float), lower, upper)
-        r = res(p)
-        cost = float(r @ r)
-        lam = 1e-3
-        for _ in range(steps):
-            j = jac(p)
-            jtj, g = j.T @ j, j.T @ r
-            dg = np.maximum(np.diag(jtj), 1e-12 * max(np.max(np.diag(jtj)), 1e-300))
-            done = True
-            for _ in range(10):
-                try:
-                    step = -np.linalg.solve(jtj + lam * np.diag(dg), g)
-                except np.linalg.LinAlgError:
-                    lam *= 10.0
-                    continue
-                q = np.clip(p + step, lower, upper)
-                rq = res(q)
-                cq = float(rq @ rq)
-                if np.isfinite(cq) and cq < cost:
-                    done = cost - cq < rtol * cost
-                    p, r, cost = q, rq, cq
-                    lam = max(lam / 5.0, 1e-9)
-                    break
-                lam *= 8.0
-            if done:
+    p = np.clip(np.asarray(p0, float), lower, upper)
+    r, j = ev(p)
+    cost, lam = float(r @ r), 1e-3
+    for _ in range(steps):
+        jtj, g = j.T @ j, j.T @ r
+        dg = np.maximum(np.diag(jtj), 1e-12 * max(np.max(np.diag(jtj)), 1e-300))
+        done = True
+        for _ in range(10):
+            q = np.clip(p - np.linalg.solve(jtj + lam * np.diag(dg), g), lower, upper)
+            rq, jq = ev(q)
+            cq = float(rq @ rq)
+            if np.isfinite(cq) and cq < cost:
+                done = cost - cq < tol
+                p, r, j, cost, lam = q, rq, jq, cq, max(lam / 5.0, 1e-9)
                 break
+            lam *= 8.0
+        if done:
+            break
     return p, cost
-
-
-# ------------------------------------------------------------------- start values
-
-
-def _bin2(img: np.ndarray) -> np.ndarray:
-    """2 x 2 bins (NaN-aware mean; an odd last row or column dropped)."""
-    h, w = img.shape[0] // 2 * 2, img.shape[1] // 2 * 2
-    a = img[:h, :w].reshape(h // 2, 2, w // 2, 2)
-    ok = np.isfinite(a)
-    n = ok.sum(axis=(1, 3))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, np.where(ok, a, 0.0).sum(axis=(1, 3)) / n, np.nan)
 
 
 def _dilate(mask: np.ndarray, steps: int) -> np.ndarray:
@@ -301,110 +289,131 @@ def _dilate(mask: np.ndarray, steps: int) -> np.ndarray:
 
 
 def _geometry_starts(img, x, y, floor, noise):
-    """Starting geometries (x_c, y_c, R, b, psi) from the bright pixels, their
-    radial width, the peak above the floor and the dark disc (x, y, radius; None when
-    not seen).
+    """Starting geometries (x_c, y_c, R, b, psi; pixels, radians) from the bright pixels,
+    their radial spread (pixels), the peak above the floor and the dark disc (x, y,
+    radius in pixels; None when not seen).
 
     The geometries: a circle through the bright pixels (the ridge, whose centre sits
     $b$ from the lens centre toward the primary) with $b$ from the flux asymmetry
     about it, both ways round; the two brightest pixel groups on a line through the
     centre, split in the ratio of the square roots of their fluxes (a point lens's
-    magnification ratio); the dark disc's centre."""
+    magnification ratio); and about the dark disc, the circle's offset from it and each
+    of the two brightest groups taken as the primary or the secondary."""
     h, w = img.shape
     sm = _smooth(img)
     v = sm - floor
     ok = np.isfinite(v)
     peak = float(np.nanmax(v)) if ok.any() else 0.0
     # The smoothing averages 9 pixels: its noise is noise / 3.
-    thr = max(4.0 * noise / 3.0, 0.12 * peak)
-    bright = ok & (v > thr)
+    bright = ok & (v > max(4.0 * noise / 3.0, 0.12 * peak))
     if bright.sum() < 5:
         bright = ok & (v >= np.nanpercentile(v, 99.0))
-    wt = v[bright]
-    bx, by = x[bright], y[bright]
+    wt, bx, by = v[bright], x[bright], y[bright]
     shadow = None
-    if floor > 0 and floor > 2.0 * noise:
-        dark = ok & (sm < 0.5 * floor)
-        comps = [c for c in _components(dark) if c.size >= 5]
+    if floor > 2.0 * noise:
+        comps = [c for c in _components(ok & (sm < 0.5 * floor)) if c.size >= 5]
         if comps:
             c = max(comps, key=lambda c: c.size)
-            xr, yr = x.ravel()[c], y.ravel()[c]
-            shadow = (float(xr.mean()), float(yr.mean()), math.sqrt(c.size / math.pi))
-    width0 = 1.0
-    starts = []
+            shadow = (float(x.flat[c].mean()), float(y.flat[c].mean()), math.sqrt(c.size / math.pi))
+    spread, starts = 1.0, []
     circ = _circle_fit(bx, by, wt) if bx.size >= 5 else None
     if circ is not None and circ[2] < 4.0 * max(h, w):
         cx, cy, rr = circ
-        rho = np.hypot(bx - cx, by - cy)
-        width0 = float(np.sqrt(np.sum(wt * (rho - rr) ** 2) / np.sum(wt)))
+        spread = float(np.sqrt(np.sum(wt * (np.hypot(bx - cx, by - cy) - rr) ** 2) / np.sum(wt)))
         # Flux asymmetry about the circle's centre, over the pixels whose mirror image
-        # through it is in the frame and finite (a frame cut does not bias it).
+        # through it is in the frame and finite (so that a frame cut does not bias it).
         mx = np.round(0.5 * w - 0.5 + 2 * cx - bx).astype(int)
         my = np.round(0.5 * h - 0.5 - (2 * cy - by)).astype(int)
-        inside = (mx >= 0) & (mx < w) & (my >= 0) & (my < h)
-        seen = np.zeros_like(inside)
-        seen[inside] = np.isfinite(img[my[inside], mx[inside]])
+        seen = (mx >= 0) & (mx < w) & (my >= 0) & (my < h)
+        seen[seen] = np.isfinite(img[my[seen], mx[seen]])
+        h1 = 0j
         if seen.sum() >= 5:
             phi = np.arctan2(by - cy, bx - cx)[seen]
             h1 = np.sum(wt[seen] * np.exp(1j * phi)) / np.sum(wt[seen])
-        else:
-            h1 = 0.0j
-        psi0, a1 = float(np.angle(h1)), float(abs(h1))
         # Point lens: flux ratio ~ 1 + 4 b / R, so the first harmonic ~ 2 b / R.
-        b0 = float(np.clip(0.5 * a1 * rr, 0.5, 0.5 * rr))
-        for sign in (1.0, -1.0):
-            c0x = cx - sign * b0 * math.cos(psi0)
-            c0y = cy - sign * b0 * math.sin(psi0)
-            rad = math.sqrt(max(rr * rr - b0 * b0, 1.0))
-            starts.append((c0x, c0y, rad, b0, psi0 + (0.0 if sign > 0 else math.pi)))
-    comps = _components(bright)
-    if len(comps) >= 2:
-        flat_v = np.where(bright, v, 0.0).ravel()
-        ranked = sorted(((flat_v[c].sum(), c) for c in comps), key=lambda t: -t[0])
-        (f1, c1), (f2, c2) = ranked[0], ranked[1]
-        if f2 > 0.02 * f1:
-            xr, yr = x.ravel(), y.ravel()
-            p1 = np.array(
-                [np.average(xr[c1], weights=flat_v[c1]), np.average(yr[c1], weights=flat_v[c1])]
-            )
-            p2 = np.array(
-                [np.average(xr[c2], weights=flat_v[c2]), np.average(yr[c2], weights=flat_v[c2])]
-            )
-            sep = float(np.hypot(*(p1 - p2)))
-            if sep > 2.0:
-                inner = sep / (1.0 + math.sqrt(f1 / f2))
-                u = (p1 - p2) / sep
-                cen = p2 + inner * u
-                psi0 = float(math.atan2(u[1], u[0]))
-                rad = math.sqrt(inner * (sep - inner))
-                starts.append((float(cen[0]), float(cen[1]), rad, 0.5 * (sep - 2 * inner), psi0))
-    if shadow is not None and circ is not None:
+        psi0, b0 = float(np.angle(h1)), float(np.clip(0.5 * abs(h1) * rr, 0.5, 0.5 * rr))
+        rad = math.sqrt(max(rr * rr - b0 * b0, 1.0))
+        for turn in (0.0, math.pi):
+            u = (math.cos(psi0 + turn), math.sin(psi0 + turn))
+            starts.append((cx - b0 * u[0], cy - b0 * u[1], rad, b0, psi0 + turn))
+        if shadow is not None:
+            sx, sy, _ = shadow
+            b0 = float(math.hypot(cx - sx, cy - sy))
+            psi0 = float(math.atan2(cy - sy, cx - sx))
+            starts.append((sx, sy, math.sqrt(max(rr * rr - b0 * b0, 1.0)), max(b0, 0.5), psi0))
+    flat = np.where(bright, v, 0.0).ravel()
+    groups = sorted(((flat[c].sum(), c) for c in _components(bright)), key=lambda t: -t[0])
+    centroids = [
+        (
+            f,
+            np.array(
+                [np.average(x.flat[c], weights=flat[c]), np.average(y.flat[c], weights=flat[c])]
+            ),
+        )
+        for f, c in groups[:2]
+    ]
+    if len(centroids) == 2 and centroids[1][0] > 0.02 * centroids[0][0]:
+        (f1, p1), (f2, p2) = centroids
+        sep = float(np.hypot(*(p1 - p2)))
+        if sep > 2.0:
+            inner = sep / (1.0 + math.sqrt(f1 / f2))
+            u = (p1 - p2) / sep
+            cen = p2 + inner * u
+            psi0 = float(math.atan2(u[1], u[0]))
+            rad = math.sqrt(inner * (sep - inner))
+            starts.append((float(cen[0]), float(cen[1]), rad, 0.5 * (sep - 2 * inner), psi0))
+    if shadow is not None:
         sx, sy, _ = shadow
-        cx, cy, rr = circ
-        b0 = float(math.hypot(cx - sx, cy - sy))
-        psi0 = float(math.atan2(cy - sy, cx - sx)) if b0 > 0 else 0.0
-        starts.append((sx, sy, math.sqrt(max(rr * rr - b0 * b0, 1.0)), max(b0, 0.5), psi0))
-    width0 = float(np.clip(width0, 0.5, 0.25 * max(h, w)))
-    return starts, width0, max(peak, noise), shadow
+        for _, pc in centroids:
+            rho1 = float(math.hypot(pc[0] - sx, pc[1] - sy))
+            az = float(math.atan2(pc[1] - sy, pc[0] - sx))
+            b0 = 0.1 * rho1
+            starts.append((sx, sy, math.sqrt(rho1 * (rho1 - 2 * b0)), b0, az))
+            starts.append((sx, sy, math.sqrt(rho1 * (rho1 + 2 * b0)), b0, az + math.pi))
+    return starts, float(np.clip(spread, 0.5, 0.25 * max(h, w))), max(peak, noise), shadow
+
+
+_NO_SHADOW = -10.0  # R_sh of a model without a shadow (pixels): its factor is 1 for rho >= 0
 
 
 def _params(start, width, peak, floor, shadow):
+    """Model parameters (see `_model`) of a starting geometry."""
     cx, cy, r0, b0, psi0 = start
     p = [cx, cy, math.log(max(r0, 1.0)), b0 * math.cos(psi0), b0 * math.sin(psi0)]
     p += [math.log(width), _shape_raw(-1.0), peak, floor]
-    if shadow is not None:
-        p.append(shadow[2])
-    return np.asarray(p)
+    return np.asarray(p + [_NO_SHADOW if shadow is None else shadow[2]])
 
 
 def _bounds(h, w, scale, shadow: bool):
+    """Parameter bounds: the centre and the source within 4 frame sizes, R from 0.5 px to
+    2 frame sizes, w from 0.05 px to a quarter frame, A >= 0, |floor| <= max |img|, R_sh
+    from 0 to 4 frame sizes (held at `_NO_SHADOW` without a shadow)."""
     big = 4.0 * max(h, w)
-    lo = [-big, -big, math.log(0.5), -big, -big, math.log(0.05), -3.0, -10 * scale, -scale]
-    hi = [big, big, math.log(big), big, big, math.log(0.25 * max(h, w)), 3.0, 10 * scale, scale]
-    if shadow:
-        lo.append(0.0)
-        hi.append(big)
+    lo = [-big, -big, math.log(0.5), -big, -big, math.log(0.05), -3.0, 0.0, -scale]
+    hi = [big, big, math.log(0.5 * big), big, big, math.log(0.25 * max(h, w)), 3.0, 10 * scale]
+    hi.append(scale)
+    lo.append(0.0 if shadow else _NO_SHADOW)
+    hi.append(big if shadow else _NO_SHADOW)
     return np.asarray(lo), np.asarray(hi)
+
+
+def _samples_for(width: float) -> int:
+    """Area samples a pixel side for a ring of radial width `width` (pixels)."""
+    return 2 if width > 0.6 else 3 if width > 0.3 else 4
+
+
+def _bins(img, x, y):
+    """The image in 2 x 2 bins (the top-left 2 floor(H/2) x 2 floor(W/2) pixels):
+    bin-centre coordinates (pixels) and NaN-aware means."""
+    h, w = img.shape
+    hh, ww = h // 2 * 2, w // 2 * 2
+    a = img[:hh, :ww].reshape(hh // 2, 2, ww // 2, 2)
+    n = np.isfinite(a).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, np.nansum(a, axis=(1, 3)) / n, np.nan)
+    xb = x[:hh:2, :ww:2] + 0.5
+    yb = y[:hh:2, :ww:2] - 0.5
+    return xb, yb, mean
 
 
 def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
@@ -413,9 +422,9 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
 
     Host-side (numpy with one small jitted model, float64). The model of the module
     docstring is fitted (Levenberg-Marquardt) from several starting geometries on the
-    image binned 2 x 2, then the best one again at full resolution on the pixels near
-    the arcs and the shadow's edge (the rest, where the model is the floor, enter as
-    their mean).
+    image in 2 x 2 bins; the best one is fitted again at full resolution on the pixels
+    near the arcs and the shadow's edge (the others, where the model is the floor,
+    enter as their mean).
 
     **Arguments:**
     - `img`: linear intensity `(H, W)` (or `(H, W, C)`, channels averaged); NaN pixels
@@ -425,6 +434,8 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
       robust estimate from second differences.
 
     **Returns:** an `ArcGuess`; its `score` says whether anything ring-like was found.
+    Raises `ValueError` for an image that is not 2-D, smaller than 8 x 8 pixels or with
+    fewer than 64 finite pixels.
     """
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 3:
@@ -443,129 +454,91 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
     scale = max(float(np.max(np.abs(vals))), 1e-300)
     sigma = max(_noise_estimate(a) if noise is None else float(noise), 1e-9 * scale)
     flat_cost = float(np.sum((vals - vals.mean()) ** 2))
-    if flat_cost <= (1e-9 * scale) ** 2 * vals.size:
-        return _nothing(floor0, sigma)  # a blank image
     starts, w0, peak, shadow = _geometry_starts(a, x, y, floor0, sigma)
-    use_shadow = shadow is not None
-    lo, hi = _bounds(h, w, scale, use_shadow)
+    if flat_cost <= (1e-9 * scale) ** 2 * vals.size or not starts:
+        return _nothing(floor0, sigma)  # blank, or nothing to start from
+    lo, hi = _bounds(h, w, scale, shadow is not None)
 
-    # Stage 1: every start on the 2 x 2 bins (a quarter of the pixels).
-    coarse = min(h, w) >= 48
-    if coarse:
-        b2 = _bin2(a)
-        xb, yb = _coords(b2.shape[0], b2.shape[1])
-        xb, yb = 2.0 * xb - (w % 2) * 0.0, 2.0 * yb
+    # Stage 1: every start on 2 x 2 bins (a quarter of the pixels; bin noise sigma / 2).
+    if min(h, w) >= 48:
+        xb, yb, b2 = _bins(a, x, y)
         okb = np.isfinite(b2)
-        # Bin centres in full-resolution pixels (the binned grid is the top-left
-        # 2*floor(h/2) x 2*floor(w/2) pixels).
-        xb = xb + (0.5 * (w // 2 * 2) - 0.5 * w)
-        yb = yb - (0.5 * (h // 2 * 2) - 0.5 * h)
-        d1 = _data(xb[okb], yb[okb], b2[okb], side=2.0)
+        d1, tol1 = _data(xb[okb], yb[okb], b2[okb], side=2.0), 0.25 * sigma**2
     else:
-        d1 = _data(x[ok], y[ok], a[ok])
-    best = None
-    for st in starts:
-        p, cost = _lm(_params(st, w0, peak, floor0, shadow), d1, use_shadow, lo, hi, rtol=1e-6)
-        if best is None or cost < best[1]:
-            best = (p, cost)
-    if best is None:
-        return _nothing(floor0, sigma)
-    p = best[0]
+        d1, tol1 = _data(x[ok], y[ok], vals), sigma**2
+    fits = [_lm(_params(st, w0, peak, floor0, shadow), d1, lo, hi, tol1) for st in starts]
+    p = min(fits, key=lambda f: f[1])[0]
 
-    # Stage 2: full resolution near the arcs (where the model is above 1e-4 of its peak,
-    # widened by 3 pixels) and the shadow's edge; the other pixels as their mean.
-    with jax.enable_x64(True):
-        d_all = _data(x[ok], y[ok], np.zeros(vals.size))
-        ring = np.zeros(d_all.data.size)
-        pr = p.copy()
-        pr[8] = 0.0
-        pr[7] = 1.0
-        ring = np.asarray(
-            _model_px(jnp.asarray(pr[:9]), jnp.asarray(d_all.xs), jnp.asarray(d_all.ys), False)
-        )[: vals.size]
-    near = np.zeros((h, w), bool)
-    near[ok] = ring > 1e-4
-    near = _dilate(near, 3)
-    if use_shadow:
+    # Stage 2: full resolution where the ring's model is above 1e-4 of its peak,
+    # widened by 3 pixels, and on the shadow's edge; the other pixels as their mean.
+    ring = np.zeros((h, w))
+    ring[ok] = _ring_profile(p, x[ok], y[ok])
+    near = _dilate(ring > 1e-4, 3) & ok
+    inside = np.zeros((h, w), bool)
+    if shadow is not None:
         rho = np.hypot(x - p[0], y - p[1])
-        near |= np.abs(rho - p[9]) < 3.0
+        near |= ok & (np.abs(rho - p[9]) < 3.0)
         inside = rho < p[9] - 3.0
-    else:
-        inside = np.zeros((h, w), bool)
-    near &= ok
     far = ok & ~near & ~inside
     xs, ys, vs, ws = x[near], y[near], a[near], np.ones(int(near.sum()))
-    if far.any():
-        xs = np.append(xs, 1e6)
-        ys = np.append(ys, 1e6)
-        vs = np.append(vs, a[far].mean())
-        ws = np.append(ws, math.sqrt(far.sum()))
-    d2 = _data(xs, ys, vs, weight=ws)
-    p, _ = _lm(p, d2, use_shadow, lo, hi, rtol=1e-9)
-    with jax.enable_x64(True):
-        full = _data(x[ok], y[ok], vals)
-        r = np.asarray(
-            _residual(
-                jnp.asarray(p),
-                *(jnp.asarray(v) for v in (full.xs, full.ys, full.data, full.weight)),
-                use_shadow,
-            )
-        )
-    cost = float(r @ r)
-    score = math.sqrt(max(flat_cost - cost, 0.0)) / sigma
-    return _summary(p, use_shadow, sigma, score)
+    if far.any():  # a pixel far away, where the model is the floor, for their mean
+        xs, ys = np.append(xs, 1e6), np.append(ys, 1e6)
+        vs, ws = np.append(vs, a[far].mean()), np.append(ws, math.sqrt(far.sum()))
+    k = _samples_for(math.exp(p[5]))
+    p, _ = _lm(p, _data(xs, ys, vs, weight=ws, k=k), lo, hi, 1e-2 * sigma**2)
+    full = _data(x[ok], y[ok], vals, k=k)
+    r = (_model(p, full.xs, full.ys) - full.data) * full.weight
+    score = math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
+    return _summary(p, shadow is not None, sigma, score)
 
 
-def _nothing(floor, noise):
-    nan = float("nan")
+def _ring_profile(p, x, y):
+    """The ring's model (amplitude 1, floor 0, no shadow) at pixel centres x, y."""
+    q = np.asarray(p, float).copy()
+    q[7], q[8], q[9] = 1.0, 0.0, _NO_SHADOW
+    return _model(q, x[:, None], y[:, None])
+
+
+def _nothing(floor: float, noise: float) -> ArcGuess:
+    """The `ArcGuess` of an image with nothing to fit: NaN geometry, score 0."""
+    nan = math.nan
     return ArcGuess(nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, floor, nan, noise, 0.0)
 
 
-def _solve_s(target, r, raw):
-    """rho (pixels) with s(rho) = target, by bisection (s increases with rho)."""
-    lo, hi = 1e-6 * r, 1e3 * r
-    for _ in range(200):
-        mid = math.sqrt(lo * hi)
-        if float(_s_of_rho(mid, r, raw)) < target:
-            lo = mid
-        else:
-            hi = mid
-    return math.sqrt(lo * hi)
+def _solve_s(target, r, c):
+    """rho (pixels) with s(rho) = target, by bisection in log rho (s increases)."""
+    lo, hi = math.log(1e-6 * r), math.log(1e3 * r)
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _s_np(math.exp(mid), r, c) < target else (lo, mid)
+    return math.exp(0.5 * (lo + hi))
 
 
-def _summary(p, shadow, noise, score) -> ArcGuess:
-    with jax.enable_x64(True):
-        r = math.exp(p[2])
-        b = math.hypot(p[3], p[4])
-        psi = math.atan2(p[4], p[3])
-        c = float(_shape_mn(jnp.asarray(p[6]))[0])
-        outer = _solve_s(b, r, p[6])
-        inner = _solve_s(-b, r, p[6])
-        wid = math.exp(p[5])
-        # Model flux on each side of the line through the centre perpendicular to psi.
-        rr = np.linspace(max(r - 12 * wid - 2 * b, 0.05 * r), r + 12 * wid + 2 * b, 600)
-        ph = np.linspace(-math.pi, math.pi, 720, endpoint=False)
-        rg, pg = np.meshgrid(rr, ph)
-        s = np.asarray(_s_of_rho(jnp.asarray(rg), r, p[6]))
-        ex = s * np.cos(pg) - b
-        ey = s * np.sin(pg)
-        g = np.exp(-0.5 * (ex * ex + ey * ey) / wid**2) * rg
-        side = np.cos(pg) > 0
-        ratio = float(g[side].sum() / max(g[~side].sum(), 1e-300))
+def _summary(p, shadow: bool, noise: float, score: float) -> ArcGuess:
+    """The `ArcGuess` of fitted parameters `p`."""
+    r, b, wid = math.exp(p[2]), math.hypot(p[3], p[4]), math.exp(p[5])
+    c = float(_shape_c(p[6]))
+    # Model flux on each side of the line through the centre perpendicular to psi
+    # (frame psi = 0), on a polar grid covering both images.
+    rr = np.linspace(max(r - 12 * wid - 2 * b, 0.02 * r), r + 12 * wid + 2 * b, 600)
+    rg, pg = np.meshgrid(rr, np.linspace(-math.pi, math.pi, 720, endpoint=False))
+    s = _s_np(rg, r, c)
+    g = np.exp(-0.5 * ((s * np.cos(pg) - b) ** 2 + (s * np.sin(pg)) ** 2) / wid**2) * rg
+    side = np.cos(pg) > 0
     return ArcGuess(
         x_c=float(p[0]),
         y_c=float(p[1]),
         ring_radius=r,
         ring_width=wid,
-        psi=float(psi % (2 * math.pi)),
-        outer_radius=outer,
-        inner_radius=inner,
+        psi=math.atan2(p[4], p[3]) % (2 * math.pi),
+        outer_radius=_solve_s(b, r, c),
+        inner_radius=_solve_s(-b, r, c),
         offset=b,
         shape=c,
-        flux_ratio=ratio,
+        flux_ratio=float(g[side].sum() / max(g[~side].sum(), 1e-300)),
         amplitude=float(p[7]),
         floor=float(p[8]),
-        shadow_radius=float(p[9]) if shadow else float("nan"),
+        shadow_radius=float(p[9]) if shadow else math.nan,
         noise=noise,
         score=float(score),
     )
