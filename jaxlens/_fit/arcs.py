@@ -307,7 +307,7 @@ def _geometry_starts(img, x, y, floor, noise):
     # The smoothing averages 9 pixels: its noise is noise / 3.
     bright = ok & (v > max(4.0 * noise / 3.0, 0.12 * peak))
     if bright.sum() < 5:
-        bright = ok & (v >= np.nanpercentile(v, 99.0))
+        bright = ok & (v >= np.nanpercentile(v, 99.0)) & (v > 0)
     wt, bx, by = v[bright], x[bright], y[bright]
     shadow = None
     if floor > 2.0 * noise:
@@ -416,15 +416,42 @@ def _bins(img, x, y):
     return xb, yb, mean
 
 
-def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
+def _view(f: float, x0: float, y0: float) -> np.ndarray:
+    """Rows e1, e2, e3 of a pinhole camera of focal length `f` (pixels) turned to look at
+    the image point (x0, y0): e3 along its ray, e1 the nearest to +x."""
+    e3 = np.array([x0, y0, f]) / math.sqrt(x0 * x0 + y0 * y0 + f * f)
+    e1 = np.array([1.0, 0.0, 0.0]) - e3[0] * e3
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(e3, e1), e3])
+
+
+def _to_view(xs, ys, f: float, rot: np.ndarray):
+    """Image points (pixels) as the turned camera `rot` (same `f`) sees them."""
+    v = rot @ np.stack([xs, ys, np.full_like(xs, f)]).reshape(3, -1)
+    return (f * v[0] / v[2]).reshape(xs.shape), (f * v[1] / v[2]).reshape(xs.shape)
+
+
+def _from_view(x1: float, y1: float, f: float, rot: np.ndarray):
+    """The image point (pixels) of the point (x1, y1) of the turned camera `rot`."""
+    v = rot.T @ np.array([x1, y1, f])
+    return float(f * v[0] / v[2]), float(f * v[1] / v[2])
+
+
+def find_arcs(img, *, noise: float | None = None, focal: float | None = None) -> ArcGuess:
     """Measure the arcs of an off-axis star's image: the lens centre, the ring's
     radius and width, the primary's azimuth, the arcs' radii and flux ratio.
 
-    Host-side (numpy with one small jitted model, float64). The model of the module
-    docstring is fitted (Levenberg-Marquardt) from several starting geometries on the
-    image in 2 x 2 bins; the best one is fitted again at full resolution on the pixels
-    near the arcs and the shadow's edge (the others, where the model is the floor,
-    enter as their mean).
+    Host-side numpy, float64. The model of the module docstring is fitted
+    (Levenberg-Marquardt) from several starting geometries on the image in 2 x 2 bins;
+    the best one is fitted again at full resolution on the pixels near the arcs and the
+    shadow's edge (the others, where the model is the floor, enter as their mean).
+
+    A camera not pointed at the hole sees the ring through an oblique pinhole
+    projection, centred about $d\\,(R/f)^2$ pixels farther out than the hole's image at
+    $d$ pixels from the image centre (1 px for $d = 17$, $R/f = 0.25$). With `focal`
+    the last fit runs on the pixels as a camera turned toward the hole sees them, so
+    that `x_c`, `y_c` are the hole's image and the radii are $f \\tan\\alpha$
+    exactly; without it they are those of the ring's image.
 
     **Arguments:**
     - `img`: linear intensity `(H, W)` (or `(H, W, C)`, channels averaged); NaN pixels
@@ -432,10 +459,12 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
       image centre.
     - `noise`: per-pixel noise standard deviation (image units), when known; default a
       robust estimate from second differences.
+    - `focal`: the camera's focal length (pixels, $(W/2)/\\tan(\\mathrm{FOV}/2)$), when
+      known.
 
     **Returns:** an `ArcGuess`; its `score` says whether anything ring-like was found.
     Raises `ValueError` for an image that is not 2-D, smaller than 8 x 8 pixels or with
-    fewer than 64 finite pixels.
+    fewer than 64 finite pixels, or a negative `noise` or `focal`.
     """
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 3:
@@ -447,6 +476,8 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
         raise ValueError(f"img has {int(ok.sum())} finite pixels; at least 64 are needed")
     if noise is not None and not noise >= 0:
         raise ValueError(f"noise={noise!r} must be >= 0 (image units)")
+    if focal is not None and not (0 < focal < math.inf):
+        raise ValueError(f"focal={focal!r} must be a positive focal length (pixels)")
     h, w = a.shape
     x, y = _coords(h, w)
     vals = a[ok]
@@ -454,9 +485,11 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
     scale = max(float(np.max(np.abs(vals))), 1e-300)
     sigma = max(_noise_estimate(a) if noise is None else float(noise), 1e-9 * scale)
     flat_cost = float(np.sum((vals - vals.mean()) ** 2))
+    if flat_cost <= (1e-9 * scale) ** 2 * vals.size:
+        return _nothing(floor0, sigma)  # a blank image
     starts, w0, peak, shadow = _geometry_starts(a, x, y, floor0, sigma)
-    if flat_cost <= (1e-9 * scale) ** 2 * vals.size or not starts:
-        return _nothing(floor0, sigma)  # blank, or nothing to start from
+    if not starts:
+        return _nothing(floor0, sigma)
     lo, hi = _bounds(h, w, scale, shadow is not None)
 
     # Stage 1: every start on 2 x 2 bins (a quarter of the pixels; bin noise sigma / 2).
@@ -480,16 +513,38 @@ def find_arcs(img, *, noise: float | None = None) -> ArcGuess:
         near |= ok & (np.abs(rho - p[9]) < 3.0)
         inside = rho < p[9] - 3.0
     far = ok & ~near & ~inside
-    xs, ys, vs, ws = x[near], y[near], a[near], np.ones(int(near.sum()))
-    if far.any():  # a pixel far away, where the model is the floor, for their mean
-        xs, ys = np.append(xs, 1e6), np.append(ys, 1e6)
-        vs, ws = np.append(vs, a[far].mean()), np.append(ws, math.sqrt(far.sum()))
     k = _samples_for(math.exp(p[5]))
-    p, _ = _lm(p, _data(xs, ys, vs, weight=ws, k=k), lo, hi, 1e-2 * sigma**2)
+    d2 = _data(x[near], y[near], a[near], k=k)
+    if far.any():  # a pixel far away, where the model is the floor, for their mean
+        d2 = _Data(
+            np.concatenate([d2.xs, np.full((1, k * k), 1e6)]),
+            np.concatenate([d2.ys, np.full((1, k * k), 1e6)]),
+            np.append(d2.data, a[far].mean()),
+            np.append(d2.weight, math.sqrt(far.sum())),
+        )
+    p, _ = _lm(p, d2, lo, hi, 1e-2 * sigma**2)
     full = _data(x[ok], y[ok], vals, k=k)
+    rot = None
+    if focal is not None:
+        # Stage 3: the same pixels seen by a camera turned toward the hole's image,
+        # first placed by the oblique projection's offset d (R/f)^2.
+        f = float(focal)
+        x0, y0 = (float(v) / (1.0 + (math.exp(p[2]) / f) ** 2) for v in p[:2])
+        rot = _view(f, x0, y0)
+        n = int(near.sum())
+        xs, ys = d2.xs.copy(), d2.ys.copy()
+        xs[:n], ys[:n] = _to_view(d2.xs[:n], d2.ys[:n], f, rot)
+        p = p.copy()
+        p[:2] = 0.0
+        p, _ = _lm(p, _Data(xs, ys, d2.data, d2.weight), lo, hi, 1e-2 * sigma**2)
+        full = _Data(*_to_view(full.xs, full.ys, f, rot), full.data, full.weight)
     r = (_model(p, full.xs, full.ys) - full.data) * full.weight
     score = math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
-    return _summary(p, shadow is not None, sigma, score)
+    guess = _summary(p, shadow is not None, sigma, score)
+    if rot is not None:
+        xc, yc = _from_view(float(p[0]), float(p[1]), float(focal), rot)
+        guess = eqx.tree_at(lambda g: (g.x_c, g.y_c), guess, (xc, yc))
+    return guess
 
 
 def _ring_profile(p, x, y):
