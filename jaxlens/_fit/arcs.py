@@ -326,16 +326,23 @@ def _geometry_starts(img, x, y, floor, noise):
         my = np.round(0.5 * h - 0.5 - (2 * cy - by)).astype(int)
         seen = (mx >= 0) & (mx < w) & (my >= 0) & (my < h)
         seen[seen] = np.isfinite(img[my[seen], mx[seen]])
-        h1 = 0j
+        h1 = h2 = 0j
         if seen.sum() >= 5:
             phi = np.arctan2(by - cy, bx - cx)[seen]
             h1 = np.sum(wt[seen] * np.exp(1j * phi)) / np.sum(wt[seen])
-        # Point lens: flux ratio ~ 1 + 4 b / R, so the first harmonic ~ 2 b / R.
-        psi0, b0 = float(np.angle(h1)), float(np.clip(0.5 * abs(h1) * rr, 0.5, 0.5 * rr))
+            h2 = np.sum(wt[seen] * np.exp(2j * phi)) / np.sum(wt[seen])
+        # The arcs' axis from the second harmonic (the arcs lie at psi and psi + pi, and
+        # a nearly closed ring is brightest there), each way round; the first harmonic's
+        # direction too. Point lens: flux ratio ~ 1 + 4 b / R, first harmonic ~ 2 b / R.
+        b0 = float(np.clip(0.5 * abs(h1) * rr, 0.5, 0.5 * rr))
         rad = math.sqrt(max(rr * rr - b0 * b0, 1.0))
-        for turn in (0.0, math.pi):
-            u = (math.cos(psi0 + turn), math.sin(psi0 + turn))
-            starts.append((cx - b0 * u[0], cy - b0 * u[1], rad, b0, psi0 + turn))
+        axis = 0.5 * float(np.angle(h2))
+        dirs = [axis, axis + math.pi]
+        if abs(math.remainder(float(np.angle(h1)) - axis, math.pi)) > math.radians(15.0):
+            dirs.append(float(np.angle(h1)))
+        for psi0 in dirs:
+            u = (math.cos(psi0), math.sin(psi0))
+            starts.append((cx - b0 * u[0], cy - b0 * u[1], rad, b0, psi0))
         if shadow is not None:
             sx, sy, _ = shadow
             b0 = float(math.hypot(cx - sx, cy - sy))
@@ -522,7 +529,7 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
             np.append(d2.data, a[far].mean()),
             np.append(d2.weight, math.sqrt(far.sum())),
         )
-    p, _ = _lm(p, d2, lo, hi, 1e-2 * sigma**2)
+    p = _best_way_round(p, d2, lo, hi, 1e-2 * sigma**2)
     full = _data(x[ok], y[ok], vals, k=k)
     rot = None
     if focal is not None:
@@ -536,7 +543,7 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         xs[:n], ys[:n] = _to_view(d2.xs[:n], d2.ys[:n], f, rot)
         p = p.copy()
         p[:2] = 0.0
-        p, _ = _lm(p, _Data(xs, ys, d2.data, d2.weight), lo, hi, 1e-2 * sigma**2)
+        p = _best_way_round(p, _Data(xs, ys, d2.data, d2.weight), lo, hi, 1e-2 * sigma**2)
         full = _Data(*_to_view(full.xs, full.ys, f, rot), full.data, full.weight)
     r = (_model(p, full.xs, full.ys) - full.data) * full.weight
     score = math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
@@ -545,6 +552,17 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         xc, yc = _from_view(float(p[0]), float(p[1]), float(focal), rot)
         guess = eqx.tree_at(lambda g: (g.x_c, g.y_c), guess, (xc, yc))
     return guess
+
+
+def _best_way_round(p, d: _Data, lo, hi, tol: float):
+    """The better fit from `p` and from `p` turned round: the same ridge with the
+    primary and secondary swapped (centre moved by 2 b along psi, b reversed), which
+    an arc offset of a pixel or two, or a frame cut, can leave nearly as good."""
+    q = np.asarray(p, float).copy()
+    q[:2] += 2.0 * q[3:5]
+    q[3:5] *= -1.0
+    q[6] = _shape_raw(-1.0)
+    return min((_lm(p, d, lo, hi, tol), _lm(q, d, lo, hi, tol)), key=lambda t: t[1])[0]
 
 
 def _ring_profile(p, x, y):
