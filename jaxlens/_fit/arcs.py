@@ -4,9 +4,9 @@ A Gaussian star at angle $\\beta$ from the point behind the hole, at position an
 $\\psi$ on the sky, is seen as two arcs: the primary (escape angle
 $\\Phi = \\pi - \\beta$, outside the Einstein ring, on the star's side) and the
 secondary ($\\Phi = \\pi + \\beta$, inside the ring, on the opposite side). `find_arcs`
-measures them on an image (host-side numpy; one small jitted model for the
-least-squares fit) and `offset_from_radii` turns the two arc radii into $\\beta$ with
-the exact escape angle of `jaxlens.trace`.
+measures them on an image (host-side numpy: a least-squares fit with an analytic
+Jacobian, no compilation) and `offset_from_radii` turns the two arc radii into
+$\\beta$ with the exact escape angle of `jaxlens.trace`.
 
 The measurement fits a lens-plane model to the pixels. About a centre $(x_c, y_c)$,
 a pixel at radius $\\rho$ and azimuth $\\varphi$ is sent to the source-plane point
@@ -45,7 +45,9 @@ class ArcGuess(eqx.Module):
     $y$ up, as PHYSICS.md; angles in radians; intensities in the image's units).
 
     **Fields:**
-    - `x_c`, `y_c`: centre of the lens (the hole's image), pixels from the image centre.
+    - `x_c`, `y_c`: centre of the lens, pixels from the image centre: the hole's image
+      for a camera pointed at the hole, or when `find_arcs` was given the focal length;
+      else the centre of the ring's (oblique) image.
     - `ring_radius`: the Einstein-ring radius $R$ (pixels): where the axis behind the
       hole maps ($\\Phi = \\pi$); for a point lens $\\sqrt{\\rho_+ \\rho_-}$.
     - `ring_width`: the ring's radial Gaussian width at $R$ (pixels), the pixels' own
@@ -66,7 +68,8 @@ class ArcGuess(eqx.Module):
     - `noise`: per-pixel noise used (image units): the given one, or a robust
       estimate.
     - `score`: signal to noise of the ring feature, $\\sqrt{\\Delta\\chi^2}$ of the fit
-      against a flat image at the floor. Noise alone gives a few; refuse below ~10.
+      against a flat image (noise alone gives 0-6); below ~10 the other fields mean
+      nothing. NaN geometry and 0 for a blank image.
     """
 
     x_c: float
@@ -161,9 +164,9 @@ def _circle_fit(x, y, wt):
 # ----------------------------------------------------------------------- the model
 
 
-def _shape_c(raw, xp=np):
+def _shape_c(raw):
     """The shape c of its raw parameter: c in (_C_MIN, _C_MAX) through tanh."""
-    return _C_MID + _C_HALF * xp.tanh(raw)
+    return _C_MID + _C_HALF * np.tanh(raw)
 
 
 def _shape_raw(c: float) -> float:
@@ -177,25 +180,24 @@ def _s_np(rho, r, c):
     return 0.5 * r * (np.exp(m * t) - np.exp(-n * t))
 
 
-def _model(p, xs, ys, *, jac: bool = False, xp=np):
+def _model(p, xs, ys, *, jac: bool = False):
     """The model at area samples `xs`, `ys` (pixels, shape (P, k*k)), averaged a pixel,
     and with `jac` its Jacobian (P, 10) with respect to `p`: x_c, y_c, ln R, b_x, b_y,
-    ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5 px: no shadow).
-    `xp`: numpy or jax.numpy."""
+    ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5 px: no shadow)."""
     dx, dy = xs - p[0], ys - p[1]
-    rho = xp.sqrt(dx * dx + dy * dy + 1e-12)
+    rho = np.sqrt(dx * dx + dy * dy + 1e-12)
     ux, uy = dx / rho, dy / rho
-    r = xp.exp(p[2])
-    c = _shape_c(p[6], xp)
+    r = np.exp(p[2])
+    c = _shape_c(p[6])
     m, n = 0.5 * (3.0 + c), 0.5 * (1.0 - c)
-    t = xp.log(rho) - p[2]
-    em, en = xp.exp(m * t), xp.exp(-n * t)
+    t = np.log(rho) - p[2]
+    em, en = np.exp(m * t), np.exp(-n * t)
     s = 0.5 * r * (em - en)
     ex, ey = s * ux - p[3], s * uy - p[4]
-    iw2 = xp.exp(-2.0 * p[5])
+    iw2 = np.exp(-2.0 * p[5])
     q = 0.5 * (ex * ex + ey * ey) * iw2
-    g = xp.exp(-q)
-    sh = 1.0 / (1.0 + xp.exp(-(rho - p[9]) / _EDGE))
+    g = np.exp(-q)
+    sh = 0.5 + 0.5 * np.tanh(0.5 * (rho - p[9]) / _EDGE)  # logistic, without overflow
     base = p[8] + p[7] * g
     val = (base * sh).mean(axis=-1)
     if not jac:
@@ -216,12 +218,12 @@ def _model(p, xs, ys, *, jac: bool = False, xp=np):
         -vx,
         -vy,
         p[7] * g * sh * 2.0 * q,
-        (vx * ux + vy * uy) * 0.5 * s * t * _C_HALF * (1.0 - xp.tanh(p[6]) ** 2),
+        (vx * ux + vy * uy) * 0.5 * s * t * _C_HALF * (1.0 - np.tanh(p[6]) ** 2),
         g * sh,
         sh,
         -dsh,
     ]
-    return val, xp.stack([col.mean(axis=-1) for col in cols], axis=-1)
+    return val, np.stack([col.mean(axis=-1) for col in cols], axis=-1)
 
 
 class _Data(eqx.Module):
@@ -510,7 +512,7 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         d1, tol1 = _data(x[ok], y[ok], vals), sigma**2
     flat1 = float(np.sum((d1.data - d1.data.mean()) ** 2))
     fits = [_lm(_params(st, w0, peak, floor0, shadow), d1, lo, hi, tol1) for st in starts]
-    p, cost1 = min(fits, key=lambda f: f[1])
+    p, cost1 = min(fits, key=lambda fit: fit[1])
     if flat1 - cost1 < 36.0 * tol1:
         # Below 6 sigma on the bins (noise alone gains chi^2 ~ 10 with these 9
         # parameters): nothing ring-like, and no full-resolution fit.
