@@ -292,8 +292,8 @@ def _dilate(mask: np.ndarray, steps: int) -> np.ndarray:
 
 def _geometry_starts(img, x, y, floor, noise):
     """Starting geometries (x_c, y_c, R, b, psi; pixels, radians) from the bright pixels,
-    their radial spread (pixels), the peak above the floor and the dark disc (x, y,
-    radius in pixels; None when not seen).
+    their radial spread (pixels), the peak above the floor, the dark disc (x, y, radius
+    in pixels; None when not seen) and the bright pixels (a boolean image).
 
     The geometries: a circle through the bright pixels (the ridge, whose centre sits
     $b$ from the lens centre toward the primary) with $b$ from the flux asymmetry
@@ -381,7 +381,8 @@ def _geometry_starts(img, x, y, floor, noise):
             b0 = 0.1 * rho1
             starts.append((sx, sy, math.sqrt(rho1 * (rho1 - 2 * b0)), b0, az))
             starts.append((sx, sy, math.sqrt(rho1 * (rho1 + 2 * b0)), b0, az + math.pi))
-    return starts, float(np.clip(spread, 0.5, 0.25 * max(h, w))), max(peak, noise), shadow
+    spread = float(np.clip(spread, 0.5, 0.25 * max(h, w)))
+    return starts, spread, max(peak, noise), shadow, bright
 
 
 _NO_SHADOW = -10.0  # R_sh of a model without a shadow (pixels): its factor is 1 for rho >= 0
@@ -498,7 +499,7 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
     flat_cost = float(np.sum((vals - vals.mean()) ** 2))
     if flat_cost <= (1e-9 * scale) ** 2 * vals.size:
         return _nothing(floor0, sigma)  # a blank image
-    starts, w0, peak, shadow = _geometry_starts(a, x, y, floor0, sigma)
+    starts, w0, peak, shadow, bright = _geometry_starts(a, x, y, floor0, sigma)
     if not starts:
         return _nothing(floor0, sigma)
     lo, hi = _bounds(h, w, scale, shadow is not None)
@@ -520,11 +521,12 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
             p, shadow is not None, sigma, _score(p, x[ok], y[ok], vals, flat_cost, sigma)
         )
 
-    # Stage 2: full resolution where the ring's model is above 1e-4 of its peak,
-    # widened by 3 pixels, and on the shadow's edge; the other pixels as their mean.
+    # Stage 2: full resolution where the ring's model is above 1e-4 of its peak or the
+    # image is bright, widened by 3 pixels, and on the shadow's edge; the other pixels
+    # as their mean.
     ring = np.zeros((h, w))
     ring[ok] = _ring_profile(p, x[ok], y[ok])
-    near = _dilate(ring > 1e-4, 3) & ok
+    near = _dilate((ring > 1e-4) | bright, 3) & ok
     inside = np.zeros((h, w), bool)
     if shadow is not None:
         rho = np.hypot(x - p[0], y - p[1])
@@ -540,8 +542,8 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
             np.append(d2.data, a[far].mean()),
             np.append(d2.weight, math.sqrt(far.sum())),
         )
-    p = _best_way_round(p, d2, lo, hi, 1e-2 * sigma**2)
     full = _data(x[ok], y[ok], vals, k=k)
+    p, cost = _best_way_round(p, d2, full, lo, hi, 1e-2 * sigma**2)
     rot = None
     if focal is not None:
         # Stage 3: the same pixels seen by a camera turned toward the hole's image,
@@ -554,10 +556,10 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         xs[:n], ys[:n] = _to_view(d2.xs[:n], d2.ys[:n], f, rot)
         p = p.copy()
         p[:2] = 0.0
-        p = _best_way_round(p, _Data(xs, ys, d2.data, d2.weight), lo, hi, 1e-2 * sigma**2)
         full = _Data(*_to_view(full.xs, full.ys, f, rot), full.data, full.weight)
-    r = (_model(p, full.xs, full.ys) - full.data) * full.weight
-    score = math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
+        d3 = _Data(xs, ys, d2.data, d2.weight)
+        p, cost = _best_way_round(p, d3, full, lo, hi, 1e-2 * sigma**2)
+    score = math.sqrt(max(flat_cost - cost, 0.0)) / sigma
     guess = _summary(p, shadow is not None, sigma, score)
     if rot is not None:
         xc, yc = _from_view(float(p[0]), float(p[1]), float(focal), rot)
@@ -573,15 +575,22 @@ def _score(p, x, y, v, flat_cost: float, sigma: float) -> float:
     return math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
 
 
-def _best_way_round(p, d: _Data, lo, hi, tol: float):
-    """The better fit from `p` and from `p` turned round: the same ridge with the
-    primary and secondary swapped (centre moved by 2 b along psi, b reversed), which
-    an arc offset of a pixel or two, or a frame cut, can leave nearly as good."""
+def _best_way_round(p, d: _Data, full: _Data, lo, hi, tol: float):
+    """The better fit, on the pixels `d`, from `p` and from `p` turned round: the same
+    ridge with the primary and secondary swapped (centre moved by 2 b along psi, b
+    reversed), which an arc offset of a pixel or two, or a frame cut, can leave nearly
+    as good. Compared on all the pixels `full`: a fit may move an arc off the pixels
+    `d`, where it would cost nothing.
+
+    **Returns:** the parameters and their residual sum of squares on `full`."""
     q = np.asarray(p, float).copy()
     q[:2] += 2.0 * q[3:5]
     q[3:5] *= -1.0
     q[6] = _shape_raw(-1.0)
-    return min((_lm(p, d, lo, hi, tol), _lm(q, d, lo, hi, tol)), key=lambda t: t[1])[0]
+    fits = [_lm(p, d, lo, hi, tol)[0], _lm(q, d, lo, hi, tol)[0]]
+    costs = [float(np.sum((_model(v, full.xs, full.ys) - full.data) ** 2)) for v in fits]
+    i = int(np.argmin(costs))
+    return fits[i], costs[i]
 
 
 def _ring_profile(p, x, y):
