@@ -108,20 +108,23 @@ def test_arcs_on_rendered_images(name):
     img, t = _scene(d, fov, lon, lat, sig, floor)
     g = find_arcs(_noisy(img, noise, seed=len(name)))
     b_px = 0.5 * (t["outer"] - t["inner"])  # the star's offset at the ring's scale
-    # Centre: measured within 0.04 px on these images (noise 1-2 % of the peak); the
-    # brief of a start value is ~1 px, asserted at 0.5 px.
+    # Centre: measured within 0.05 px here (noise 1-2 % of the peak), 0.27 px at most
+    # over 80 random images of this grid; a start value, asserted at 0.5 px.
     assert math.hypot(g.x_c - t["x"], g.y_c) < 0.5
     # psi is the direction of the source offset b from the centre: an error e (pixels)
-    # across it turns psi by atan(e / b). Measured e < 0.05 px here; allowed 0.3 px.
-    assert _angle_err(g.psi, t["psi"]) < math.atan(0.3 / b_px)
-    # Radii: measured within 0.04 px of the exact ones; 0.3 px allowed. The Einstein
-    # radius (Phi = pi) and the width sigma / |dPhi/drho| at it within 0.5 px, 15 %.
+    # across it turns psi by atan(e / b). Measured e < 0.005 px here, < 0.04 px over the
+    # 80 images; allowed 0.1 px (2.6 deg at b = 1.1 px, 0.7 deg at b = 7.7 px).
+    assert _angle_err(g.psi, t["psi"]) < math.atan(0.1 / b_px)
+    # Radii: measured within 0.04 px of the exact ones (0.27 px over the 80 images,
+    # where the arc is in the frame); 0.3 px allowed. The Einstein radius (Phi = pi)
+    # and the width sigma / |dPhi/drho| at it (measured 0.01 px, 2 %) within 0.5 px, 15 %.
     assert abs(g.outer_radius - t["outer"]) < 0.3
     assert abs(g.inner_radius - t["inner"]) < 0.3
     assert abs(g.ring_radius - t["ring"]) < 0.5
     assert g.ring_width == pytest.approx(t["width"], rel=0.15)
     # beta from the radii through the exact escape angle at the true D and focal length:
-    # measured within 2.5 %; a start value, asserted at 20 %.
+    # measured within 2 % (over the 80 images: 3 % at the 90th percentile); a start
+    # value, asserted at 20 %.
     assert source_offset_from_arcs(g, d, t["focal"]) == pytest.approx(t["beta"], rel=0.2)
     assert g.floor == pytest.approx(floor, abs=3 * noise / math.sqrt(img.size))
     assert g.score > 100.0
@@ -130,7 +133,7 @@ def test_arcs_on_rendered_images(name):
 def test_flux_ratio_matches_the_image():
     # Both arcs inside the frame: the ratio of the flux above the floor on the two sides
     # of the line through the hole perpendicular to psi, summed on the noise-free image,
-    # against the model's ratio from the noisy one (measured within 0.5 %; 3 % allowed).
+    # against the model's ratio from the noisy one (measured within 0.6 %; 3 % allowed).
     for name in ("D40-beta1", "D15-beta4"):
         d, fov, lon, lat, sig, floor, noise = CASES[name]
         img, t = _scene(d, fov, lon, lat, sig, floor)
@@ -159,7 +162,7 @@ def test_yawed_camera_off_centre_hole():
     # With it: the hole's image itself (measured within 0.03 px) and the exact radii.
     g = find_arcs(img, focal=f)
     assert math.hypot(g.x_c - t["x"], g.y_c) < 0.2
-    assert _angle_err(g.psi, t["psi"]) < math.atan(0.3 / b_px)
+    assert _angle_err(g.psi, t["psi"]) < math.atan(0.1 / b_px)
     assert abs(g.outer_radius - t["outer"]) < 0.3
     assert abs(g.inner_radius - t["inner"]) < 0.3
     assert source_offset_from_arcs(g, d, f) == pytest.approx(t["beta"], rel=0.2)
@@ -177,7 +180,7 @@ def test_masked_pixels():
     g = find_arcs(img)
     b_px = 0.5 * (t["outer"] - t["inner"])
     assert math.hypot(g.x_c, g.y_c) < 0.5
-    assert _angle_err(g.psi, t["psi"]) < math.atan(0.3 / b_px)
+    assert _angle_err(g.psi, t["psi"]) < math.atan(0.1 / b_px)
     assert source_offset_from_arcs(g, d, t["focal"]) == pytest.approx(t["beta"], rel=0.2)
 
 
@@ -189,14 +192,14 @@ def test_small_image():
     g = find_arcs(crop)
     b_px = 0.5 * (t["outer"] - t["inner"])
     assert math.hypot(g.x_c, g.y_c) < 0.5
-    assert _angle_err(g.psi, t["psi"]) < math.atan(0.3 / b_px)
+    assert _angle_err(g.psi, t["psi"]) < math.atan(0.1 / b_px)
     assert source_offset_from_arcs(g, d, t["focal"]) == pytest.approx(t["beta"], rel=0.2)
 
 
 def test_score_is_the_rings_signal_to_noise():
     rng = np.random.default_rng(4)
-    # Pure noise and a blank or noisy floor: nothing ring-like. Over 6 noise images the
-    # fit's 9 free parameters gain chi^2 ~ 10-30 (score 3-5.5); blank: exactly 0.
+    # Pure noise and a blank or noisy floor: nothing ring-like. Noise images score 0-3
+    # (the fit's 9 free parameters gain chi^2 < 10 on them); blank: exactly 0.
     for _ in range(3):
         assert find_arcs(rng.normal(0.0, 0.01, (H, W))).score < 10.0
         assert find_arcs(0.03 + rng.normal(0.0, 0.01, (H, W))).score < 10.0
