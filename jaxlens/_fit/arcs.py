@@ -1,0 +1,695 @@
+"""Start values for a star off the axis: the two arcs of its image.
+
+A Gaussian star at angle $\\beta$ from the point behind the hole, at position angle
+$\\psi$ on the sky, is seen as two arcs: the primary (escape angle
+$\\Phi = \\pi - \\beta$, outside the Einstein ring, on the star's side) and the
+secondary ($\\Phi = \\pi + \\beta$, inside the ring, on the opposite side). `find_arcs`
+measures them on an image (host-side numpy: a least-squares fit with an analytic
+Jacobian, no compilation) and `offset_from_radii` turns the two arc radii into
+$\\beta$ with the exact escape angle of `jaxlens.trace`.
+
+The measurement fits a lens-plane model to the pixels. About a centre $(x_c, y_c)$,
+a pixel at radius $\\rho$ and azimuth $\\varphi$ is sent to the source-plane point
+$s(\\rho)\\,(\\cos\\varphi, \\sin\\varphi)$ (pixels), with
+$s(\\rho) = R\\,(e^{m t} - e^{-n t})/2$, $t = \\ln(\\rho/R)$, $m = (3 + c)/2$,
+$n = (1 - c)/2$: $s(R) = 0$, $s'(R) = 1$, $R\\,s''(R)/s'(R) = c$; $c = -1$ is the
+weak-field point lens $s = (\\rho - R^2/\\rho)/2$. The exact escape angle of a
+pinhole camera has $c = -1.14$ at $D = 200$, $-1.37$ at $D = 40$, $-1.73$ at
+$D = 15$, $-2.5$ at $D = 5$, so $c$ is fitted. The star is a Gaussian of width $w$
+(pixels, the ring's radial width at $R$) about the source-plane point
+$b\\,(\\cos\\psi, \\sin\\psi)$; the image is
+$\\mathrm{floor} + A\\,e^{-|S - B|^2 / 2 w^2}$, times a dark disc (the shadow) of
+radius $R_{sh}$ about the centre when the floor shows one, averaged over $2 \\times 2$
+area samples a pixel (more for rings narrower than 0.6 pixel). The primary and
+secondary images then lie on one line through the centre; their radii along $\\psi$
+and $\\psi + \\pi$ solve $s(\\rho) = \\pm b$.
+"""
+
+import math
+from collections import deque
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+_EDGE = 0.25  # width of the shadow's edge in the model (pixels)
+# Range of the shape c: m, n > 0 needs -3 < c < 1; the exact map has c <= -1 (c -> -1
+# far from the hole), and c > -1 would let a lone arc pass for the other one.
+_C_MIN, _C_MAX = -2.95, -0.6
+_C_MID, _C_HALF = 0.5 * (_C_MIN + _C_MAX), 0.5 * (_C_MAX - _C_MIN)
+
+
+class ArcGuess(eqx.Module):
+    """What `find_arcs` measured on an image (pixels from the image centre, $x$ right,
+    $y$ up, as PHYSICS.md; angles in radians; intensities in the image's units).
+
+    **Fields:**
+    - `x_c`, `y_c`: centre of the lens, pixels from the image centre: the hole's image
+      for a camera pointed at the hole, or when `find_arcs` was given the focal length;
+      else the centre of the ring's (oblique) image.
+    - `ring_radius`: the Einstein-ring radius $R$ (pixels): where the axis behind the
+      hole maps ($\\Phi = \\pi$); for a point lens $\\sqrt{\\rho_+ \\rho_-}$.
+    - `ring_width`: the ring's radial Gaussian width at $R$ (pixels), the pixels' own
+      area taken out.
+    - `psi`: azimuth of the primary (brighter, outer) arc, radians from $+x$ toward $+y$;
+      the star's position angle on the sky.
+    - `outer_radius`, `inner_radius`: radii (pixels, from the centre) of the brightness
+      peak along `psi` (primary) and along `psi + pi` (secondary).
+    - `offset`: $b$, the star's offset in the model's source plane (pixels at the
+      ring's scale; $(\\rho_+ - \\rho_-)/2$ to first order).
+    - `shape`: the fitted $c = R s''(R) / s'(R)$ of the module docstring.
+    - `flux_ratio`: integrated flux (above the floor) on the primary's side of the
+      line through the centre perpendicular to `psi`, over that on the other side, in
+      the model (so arcs cut by the frame count whole).
+    - `amplitude`: peak of the star's image above the floor (image units).
+    - `floor`: the uniform sky level (image units).
+    - `shadow_radius`: radius of the dark disc (pixels); NaN when none is seen.
+    - `noise`: per-pixel noise used (image units): the given one, or a robust
+      estimate.
+    - `score`: signal to noise of the ring feature, $\\sqrt{\\Delta\\chi^2}$ of the fit
+      against a flat image (noise alone gives 0-6); below ~10 the other fields mean
+      nothing. NaN geometry and 0 for a blank image.
+    """
+
+    x_c: float
+    y_c: float
+    ring_radius: float
+    ring_width: float
+    psi: float
+    outer_radius: float
+    inner_radius: float
+    offset: float
+    shape: float
+    flux_ratio: float
+    amplitude: float
+    floor: float
+    shadow_radius: float
+    noise: float
+    score: float
+
+
+# ----------------------------------------------------------------- pixel statistics
+
+
+def _coords(h: int, w: int):
+    """Pixel-centre coordinates (x right, y up, from the image centre) of an (h, w) grid."""
+    x = np.arange(w) + 0.5 - 0.5 * w
+    y = 0.5 * h - (np.arange(h) + 0.5)
+    return np.meshgrid(x, y)
+
+
+def _noise_estimate(img: np.ndarray) -> float:
+    """Per-pixel noise from the median absolute second difference along rows and columns
+    (robust to the arcs and to NaN pixels)."""
+    parts = [img[:, 2:] - 2.0 * img[:, 1:-1] + img[:, :-2], img[2:] - 2.0 * img[1:-1] + img[:-2]]
+    d = np.concatenate([p.ravel() for p in parts])
+    d = d[np.isfinite(d)]
+    if d.size < 8:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(6.0))
+
+
+def _smooth(img: np.ndarray) -> np.ndarray:
+    """3 x 3 box mean over the finite pixels (NaN where none is)."""
+    ok = np.isfinite(img)
+    v = np.where(ok, img, 0.0)
+    pv, pc = np.pad(v, 1), np.pad(ok.astype(float), 1)
+    h, w = img.shape
+    s = sum(pv[i : i + h, j : j + w] for i in range(3) for j in range(3))
+    c = sum(pc[i : i + h, j : j + w] for i in range(3) for j in range(3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(c > 0, s / c, np.nan)
+
+
+def _components(mask: np.ndarray) -> list[np.ndarray]:
+    """8-connected components of a boolean image, as arrays of flat indices."""
+    h, w = mask.shape
+    seen = ~mask.ravel().copy()
+    out = []
+    for start in np.flatnonzero(~seen):
+        if seen[start]:
+            continue
+        seen[start] = True
+        queue, members = deque([start]), [start]
+        while queue:
+            k = queue.popleft()
+            r, c = divmod(int(k), w)
+            for dr in (-1, 0, 1):
+                for dc in (-1, 0, 1):
+                    rr, cc = r + dr, c + dc
+                    if 0 <= rr < h and 0 <= cc < w:
+                        j = rr * w + cc
+                        if not seen[j]:
+                            seen[j] = True
+                            queue.append(j)
+                            members.append(j)
+        out.append(np.asarray(members))
+    return out
+
+
+def _circle_fit(x, y, wt):
+    """Weighted algebraic (Kasa) circle through points: centre and radius (pixels), or
+    None when the points do not fix one."""
+    a = np.stack([x, y, np.ones_like(x)], 1) * np.sqrt(wt)[:, None]
+    rhs = (x * x + y * y) * np.sqrt(wt)
+    sol, *_ = np.linalg.lstsq(a, rhs, rcond=None)
+    cx, cy = 0.5 * sol[0], 0.5 * sol[1]
+    r2 = sol[2] + cx * cx + cy * cy
+    if not np.isfinite(r2) or r2 <= 0:
+        return None
+    return float(cx), float(cy), float(math.sqrt(r2))
+
+
+# ----------------------------------------------------------------------- the model
+
+
+def _shape_c(raw):
+    """The shape c of its raw parameter: c in (_C_MIN, _C_MAX) through tanh."""
+    return _C_MID + _C_HALF * np.tanh(raw)
+
+
+def _shape_raw(c: float) -> float:
+    return float(np.arctanh(np.clip((c - _C_MID) / _C_HALF, -0.999, 0.999)))
+
+
+def _s_np(rho, r, c):
+    """$s(\\rho)$ of the module docstring (numpy; pixels)."""
+    m, n = 0.5 * (3.0 + c), 0.5 * (1.0 - c)
+    t = np.log(rho / r)
+    return 0.5 * r * (np.exp(m * t) - np.exp(-n * t))
+
+
+def _model(p, xs, ys, *, jac: bool = False):
+    """The model at area samples `xs`, `ys` (pixels, shape (P, k*k)), averaged a pixel,
+    and with `jac` its Jacobian (P, 10) with respect to `p`: x_c, y_c, ln R, b_x, b_y,
+    ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5 px: no shadow)."""
+    dx, dy = xs - p[0], ys - p[1]
+    rho = np.sqrt(dx * dx + dy * dy + 1e-12)
+    ux, uy = dx / rho, dy / rho
+    r = np.exp(p[2])
+    c = _shape_c(p[6])
+    m, n = 0.5 * (3.0 + c), 0.5 * (1.0 - c)
+    t = np.log(rho) - p[2]
+    em, en = np.exp(m * t), np.exp(-n * t)
+    s = 0.5 * r * (em - en)
+    ex, ey = s * ux - p[3], s * uy - p[4]
+    iw2 = np.exp(-2.0 * p[5])
+    q = 0.5 * (ex * ex + ey * ey) * iw2
+    g = np.exp(-q)
+    sh = 0.5 + 0.5 * np.tanh(0.5 * (rho - p[9]) / _EDGE)  # logistic, without overflow
+    base = p[8] + p[7] * g
+    val = (base * sh).mean(axis=-1)
+    if not jac:
+        return val
+    sp = 0.5 * r * (m * em + n * en) / rho  # ds/drho
+    # d(value)/d(e_x, e_y) through g, and d(value)/d(rho) through the shadow's edge
+    ag = -p[7] * g * sh * iw2
+    vx, vy = ag * ex, ag * ey
+    dsh = base * sh * (1.0 - sh) / _EDGE
+    cols = [
+        vx * (-sp * ux * ux - s * uy * uy / rho)
+        + vy * (-sp * ux * uy + s * ux * uy / rho)
+        - dsh * ux,
+        vx * (-sp * ux * uy + s * ux * uy / rho)
+        + vy * (-sp * uy * uy - s * ux * ux / rho)
+        - dsh * uy,
+        (vx * ux + vy * uy) * (s - 0.5 * r * (m * em + n * en)),
+        -vx,
+        -vy,
+        p[7] * g * sh * 2.0 * q,
+        (vx * ux + vy * uy) * 0.5 * s * t * _C_HALF * (1.0 - np.tanh(p[6]) ** 2),
+        g * sh,
+        sh,
+        -dsh,
+    ]
+    return val, np.stack([col.mean(axis=-1) for col in cols], axis=-1)
+
+
+class _Data(eqx.Module):
+    """Pixels a fit compares: area-sample coordinates `xs`, `ys` (P, k*k; pixels), the
+    values and the residual weights (P,)."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    data: np.ndarray
+    weight: np.ndarray
+
+
+def _data(x, y, v, side: float = 1.0, weight=None, k: int = 2) -> _Data:
+    """Pixels (or bins) of side `side` (pixels) centred at x, y with values v, k x k
+    area samples each."""
+    off = ((np.arange(k) + 0.5) / k - 0.5) * side
+    ox, oy = np.meshgrid(off, off)
+    wt = np.ones(x.size) if weight is None else np.asarray(weight, float)
+    return _Data(x[:, None] + ox.ravel()[None], y[:, None] - oy.ravel()[None], v, wt)
+
+
+def _lm(p0, d: _Data, lower, upper, tol: float, *, steps: int = 80):
+    """Levenberg-Marquardt (Marquardt's diagonal scaling) with the parameters clipped
+    to [lower, upper]; stops when a step lowers the cost by less than `tol` (image
+    units squared: a fraction of the noise variance is a fraction of one in $\\chi^2$).
+
+    **Returns:** the parameters and the residual sum of squares."""
+
+    def ev(p):
+        val, j = _model(p, d.xs, d.ys, jac=True)
+        return (val - d.data) * d.weight, j * d.weight[:, None]
+
+    p = np.clip(np.asarray(p0, float), lower, upper)
+    r, j = ev(p)
+    cost, lam = float(r @ r), 1e-3
+    for _ in range(steps):
+        jtj, g = j.T @ j, j.T @ r
+        dg = np.maximum(np.diag(jtj), 1e-12 * max(np.max(np.diag(jtj)), 1e-300))
+        done = True
+        for _ in range(10):
+            q = np.clip(p - np.linalg.solve(jtj + lam * np.diag(dg), g), lower, upper)
+            rq, jq = ev(q)
+            cq = float(rq @ rq)
+            if np.isfinite(cq) and cq < cost:
+                done = cost - cq < tol
+                p, r, j, cost, lam = q, rq, jq, cq, max(lam / 5.0, 1e-9)
+                break
+            lam *= 8.0
+        if done:
+            break
+    return p, cost
+
+
+def _dilate(mask: np.ndarray, steps: int) -> np.ndarray:
+    """Boolean dilation by a (2 steps + 1)-pixel square."""
+    out = mask.copy()
+    h, w = mask.shape
+    for _ in range(steps):
+        p = np.pad(out, 1)
+        out = np.zeros_like(mask)
+        for i in range(3):
+            for j in range(3):
+                out |= p[i : i + h, j : j + w]
+    return out
+
+
+def _geometry_starts(img, x, y, floor, noise):
+    """Starting geometries (x_c, y_c, R, b, psi; pixels, radians) from the bright pixels,
+    their radial spread (pixels), the peak above the floor, the dark disc (x, y, radius
+    in pixels; None when not seen) and the bright pixels (a boolean image).
+
+    The geometries: a circle through the bright pixels (the ridge, whose centre sits
+    $b$ from the lens centre toward the primary) with $b$ from the flux asymmetry
+    about it, both ways round; the two brightest pixel groups on a line through the
+    centre, split in the ratio of the square roots of their fluxes (a point lens's
+    magnification ratio); and about the dark disc, the circle's offset from it and each
+    of the two brightest groups taken as the primary or the secondary."""
+    h, w = img.shape
+    sm = _smooth(img)
+    v = sm - floor
+    ok = np.isfinite(v)
+    peak = float(np.nanmax(v)) if ok.any() else 0.0
+    # The smoothing averages 9 pixels: its noise is noise / 3.
+    bright = ok & (v > max(4.0 * noise / 3.0, 0.12 * peak))
+    if bright.sum() < 5:
+        bright = ok & (v >= np.nanpercentile(v, 99.0)) & (v > 0)
+    wt, bx, by = v[bright], x[bright], y[bright]
+    shadow = None
+    if floor > 1.5 * noise:
+        # Smoothed floor pixels fall below half the floor with probability
+        # Phi(-1.5 floor / noise) < 1.2 %, rarely 9 of them together.
+        comps = [c for c in _components(ok & (sm < 0.5 * floor)) if c.size >= 9]
+        if comps:
+            c = max(comps, key=lambda c: c.size)
+            shadow = (float(x.flat[c].mean()), float(y.flat[c].mean()), math.sqrt(c.size / math.pi))
+    spread, starts = 1.0, []
+    circ = _circle_fit(bx, by, wt) if bx.size >= 5 else None
+    if circ is not None and circ[2] < 4.0 * max(h, w):
+        cx, cy, rr = circ
+        spread = float(np.sqrt(np.sum(wt * (np.hypot(bx - cx, by - cy) - rr) ** 2) / np.sum(wt)))
+        # Flux asymmetry about the circle's centre, over the pixels whose mirror image
+        # through it is in the frame and finite (so that a frame cut does not bias it).
+        mx = np.round(0.5 * w - 0.5 + 2 * cx - bx).astype(int)
+        my = np.round(0.5 * h - 0.5 - (2 * cy - by)).astype(int)
+        seen = (mx >= 0) & (mx < w) & (my >= 0) & (my < h)
+        seen[seen] = np.isfinite(img[my[seen], mx[seen]])
+        h1 = h2 = 0j
+        if seen.sum() >= 5:
+            phi = np.arctan2(by - cy, bx - cx)[seen]
+            h1 = np.sum(wt[seen] * np.exp(1j * phi)) / np.sum(wt[seen])
+            h2 = np.sum(wt[seen] * np.exp(2j * phi)) / np.sum(wt[seen])
+        # The arcs' axis from the second harmonic (the arcs lie at psi and psi + pi, and
+        # a nearly closed ring is brightest there), each way round; the first harmonic's
+        # direction too. Point lens: flux ratio ~ 1 + 4 b / R, first harmonic ~ 2 b / R.
+        b0 = float(np.clip(0.5 * abs(h1) * rr, 0.5, 0.5 * rr))
+        rad = math.sqrt(max(rr * rr - b0 * b0, 1.0))
+        axis = 0.5 * float(np.angle(h2))
+        dirs = [axis, axis + math.pi]
+        if abs(math.remainder(float(np.angle(h1)) - axis, math.pi)) > math.radians(15.0):
+            dirs.append(float(np.angle(h1)))
+        for psi0 in dirs:
+            u = (math.cos(psi0), math.sin(psi0))
+            starts.append((cx - b0 * u[0], cy - b0 * u[1], rad, b0, psi0))
+        if shadow is not None:
+            sx, sy, _ = shadow
+            b0 = float(math.hypot(cx - sx, cy - sy))
+            psi0 = float(math.atan2(cy - sy, cx - sx))
+            starts.append((sx, sy, math.sqrt(max(rr * rr - b0 * b0, 1.0)), max(b0, 0.5), psi0))
+    flat = np.where(bright, v, 0.0).ravel()
+    groups = sorted(((flat[c].sum(), c) for c in _components(bright)), key=lambda t: -t[0])
+    centroids = [
+        (
+            f,
+            np.array(
+                [np.average(x.flat[c], weights=flat[c]), np.average(y.flat[c], weights=flat[c])]
+            ),
+        )
+        for f, c in groups[:2]
+    ]
+    if len(centroids) == 2 and centroids[1][0] > 0.02 * centroids[0][0]:
+        (f1, p1), (f2, p2) = centroids
+        sep = float(np.hypot(*(p1 - p2)))
+        if sep > 2.0:
+            inner = sep / (1.0 + math.sqrt(f1 / f2))
+            u = (p1 - p2) / sep
+            cen = p2 + inner * u
+            psi0 = float(math.atan2(u[1], u[0]))
+            rad = math.sqrt(inner * (sep - inner))
+            starts.append((float(cen[0]), float(cen[1]), rad, 0.5 * (sep - 2 * inner), psi0))
+    if shadow is not None:
+        sx, sy, _ = shadow
+        for _, pc in centroids:
+            rho1 = float(math.hypot(pc[0] - sx, pc[1] - sy))
+            az = float(math.atan2(pc[1] - sy, pc[0] - sx))
+            b0 = 0.1 * rho1
+            starts.append((sx, sy, math.sqrt(rho1 * (rho1 - 2 * b0)), b0, az))
+            starts.append((sx, sy, math.sqrt(rho1 * (rho1 + 2 * b0)), b0, az + math.pi))
+    spread = float(np.clip(spread, 0.5, 0.25 * max(h, w)))
+    return starts, spread, max(peak, noise), shadow, bright
+
+
+_NO_SHADOW = -10.0  # R_sh of a model without a shadow (pixels): its factor is 1 for rho >= 0
+
+
+def _params(start, width, peak, floor, shadow):
+    """Model parameters (see `_model`) of a starting geometry."""
+    cx, cy, r0, b0, psi0 = start
+    p = [cx, cy, math.log(max(r0, 1.0)), b0 * math.cos(psi0), b0 * math.sin(psi0)]
+    p += [math.log(width), _shape_raw(-1.0), peak, floor]
+    return np.asarray(p + [_NO_SHADOW if shadow is None else shadow[2]])
+
+
+def _bounds(h, w, scale, shadow: bool):
+    """Parameter bounds: the centre and the source within 4 frame sizes, R from 0.5 px to
+    2 frame sizes, w from 0.05 px to a quarter frame, A >= 0, |floor| <= max |img|, R_sh
+    from 0 to 4 frame sizes (held at `_NO_SHADOW` without a shadow)."""
+    big = 4.0 * max(h, w)
+    lo = [-big, -big, math.log(0.5), -big, -big, math.log(0.05), -3.0, 0.0, -scale]
+    hi = [big, big, math.log(0.5 * big), big, big, math.log(0.25 * max(h, w)), 3.0, 10 * scale]
+    hi.append(scale)
+    lo.append(0.0 if shadow else _NO_SHADOW)
+    hi.append(big if shadow else _NO_SHADOW)
+    return np.asarray(lo), np.asarray(hi)
+
+
+def _samples_for(width: float) -> int:
+    """Area samples a pixel side for a ring of radial width `width` (pixels)."""
+    return 2 if width > 0.6 else 3 if width > 0.3 else 4
+
+
+def _bins(img, x, y):
+    """The image in 2 x 2 bins (the top-left 2 floor(H/2) x 2 floor(W/2) pixels):
+    bin-centre coordinates (pixels) and NaN-aware means."""
+    h, w = img.shape
+    hh, ww = h // 2 * 2, w // 2 * 2
+    a = img[:hh, :ww].reshape(hh // 2, 2, ww // 2, 2)
+    n = np.isfinite(a).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n > 0, np.nansum(a, axis=(1, 3)) / n, np.nan)
+    xb = x[:hh:2, :ww:2] + 0.5
+    yb = y[:hh:2, :ww:2] - 0.5
+    return xb, yb, mean
+
+
+def _view(f: float, x0: float, y0: float) -> np.ndarray:
+    """Rows e1, e2, e3 of a pinhole camera of focal length `f` (pixels) turned to look at
+    the image point (x0, y0): e3 along its ray, e1 the nearest to +x."""
+    e3 = np.array([x0, y0, f]) / math.sqrt(x0 * x0 + y0 * y0 + f * f)
+    e1 = np.array([1.0, 0.0, 0.0]) - e3[0] * e3
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(e3, e1), e3])
+
+
+def _to_view(xs, ys, f: float, rot: np.ndarray):
+    """Image points (pixels) as the turned camera `rot` (same `f`) sees them."""
+    v = rot @ np.stack([xs, ys, np.full_like(xs, f)]).reshape(3, -1)
+    return (f * v[0] / v[2]).reshape(xs.shape), (f * v[1] / v[2]).reshape(xs.shape)
+
+
+def _from_view(x1: float, y1: float, f: float, rot: np.ndarray):
+    """The image point (pixels) of the point (x1, y1) of the turned camera `rot`."""
+    v = rot.T @ np.array([x1, y1, f])
+    return float(f * v[0] / v[2]), float(f * v[1] / v[2])
+
+
+def find_arcs(img, *, noise: float | None = None, focal: float | None = None) -> ArcGuess:
+    """Measure the arcs of an off-axis star's image: the lens centre, the ring's
+    radius and width, the primary's azimuth, the arcs' radii and flux ratio.
+
+    Host-side numpy, float64. The model of the module docstring is fitted
+    (Levenberg-Marquardt) from several starting geometries on the image in 2 x 2 bins;
+    the best one is fitted again at full resolution on the pixels near the arcs and the
+    shadow's edge (the others, where the model is the floor, enter as their mean).
+
+    A camera not pointed at the hole sees the ring through an oblique pinhole
+    projection, centred about $d\\,(R/f)^2$ pixels farther out than the hole's image at
+    $d$ pixels from the image centre (1 px for $d = 17$, $R/f = 0.25$). With `focal`
+    the last fit runs on the pixels as a camera turned toward the hole sees them, so
+    that `x_c`, `y_c` are the hole's image and the radii are $f \\tan\\alpha$
+    exactly; without it they are those of the ring's image.
+
+    **Arguments:**
+    - `img`: linear intensity `(H, W)` (or `(H, W, C)`, channels averaged); NaN pixels
+      are masked out. The arcs may be cut by the frame; the hole need not be at the
+      image centre.
+    - `noise`: per-pixel noise standard deviation (image units), when known; default a
+      robust estimate from second differences.
+    - `focal`: the camera's focal length (pixels, $(W/2)/\\tan(\\mathrm{FOV}/2)$), when
+      known.
+
+    **Returns:** an `ArcGuess`; its `score` says whether anything ring-like was found.
+    Raises `ValueError` for an image that is not 2-D, smaller than 8 x 8 pixels or with
+    fewer than 64 finite pixels, or a negative `noise` or `focal`.
+    """
+    a = np.asarray(img, dtype=np.float64)
+    if a.ndim == 3:
+        a = a.mean(axis=-1)
+    if a.ndim != 2 or min(a.shape) < 8:
+        raise ValueError(f"img of shape {np.shape(img)} must be (H, W) with H, W >= 8 pixels")
+    ok = np.isfinite(a)
+    if ok.sum() < 64:
+        raise ValueError(f"img has {int(ok.sum())} finite pixels; at least 64 are needed")
+    if noise is not None and not noise >= 0:
+        raise ValueError(f"noise={noise!r} must be >= 0 (image units)")
+    if focal is not None and not (0 < focal < math.inf):
+        raise ValueError(f"focal={focal!r} must be a positive focal length (pixels)")
+    h, w = a.shape
+    x, y = _coords(h, w)
+    vals = a[ok]
+    floor0 = float(np.median(vals))
+    scale = max(float(np.max(np.abs(vals))), 1e-300)
+    sigma = max(_noise_estimate(a) if noise is None else float(noise), 1e-9 * scale)
+    flat_cost = float(np.sum((vals - vals.mean()) ** 2))
+    if flat_cost <= (1e-9 * scale) ** 2 * vals.size:
+        return _nothing(floor0, sigma)  # a blank image
+    starts, w0, peak, shadow, bright = _geometry_starts(a, x, y, floor0, sigma)
+    if not starts:
+        return _nothing(floor0, sigma)
+    lo, hi = _bounds(h, w, scale, shadow is not None)
+
+    # Stage 1: every start on 2 x 2 bins (a quarter of the pixels; bin noise sigma / 2).
+    if min(h, w) >= 48:
+        xb, yb, b2 = _bins(a, x, y)
+        okb = np.isfinite(b2)
+        d1, tol1 = _data(xb[okb], yb[okb], b2[okb], side=2.0), 0.25 * sigma**2
+    else:
+        d1, tol1 = _data(x[ok], y[ok], vals), sigma**2
+    flat1 = float(np.sum((d1.data - d1.data.mean()) ** 2))
+    fits = [_lm(_params(st, w0, peak, floor0, shadow), d1, lo, hi, tol1) for st in starts]
+    p, cost1 = min(fits, key=lambda fit: fit[1])
+    if flat1 - cost1 < 36.0 * tol1:
+        # Below 6 sigma on the bins (noise alone gains chi^2 ~ 10 with these 9
+        # parameters): nothing ring-like, and no full-resolution fit.
+        return _summary(
+            p, shadow is not None, sigma, _score(p, x[ok], y[ok], vals, flat_cost, sigma)
+        )
+
+    # Stage 2: full resolution where the ring's model is above 1e-4 of its peak or the
+    # image is bright, widened by 3 pixels, and on the shadow's edge; the other pixels
+    # as their mean.
+    ring = np.zeros((h, w))
+    ring[ok] = _ring_profile(p, x[ok], y[ok])
+    near = _dilate((ring > 1e-4) | bright, 3) & ok
+    inside = np.zeros((h, w), bool)
+    if shadow is not None:
+        rho = np.hypot(x - p[0], y - p[1])
+        near |= ok & (np.abs(rho - p[9]) < 3.0)
+        inside = rho < p[9] - 3.0
+    far = ok & ~near & ~inside
+    k = _samples_for(math.exp(p[5]))
+    d2 = _data(x[near], y[near], a[near], k=k)
+    if far.any():  # a pixel far away, where the model is the floor, for their mean
+        d2 = _Data(
+            np.concatenate([d2.xs, np.full((1, k * k), 1e6)]),
+            np.concatenate([d2.ys, np.full((1, k * k), 1e6)]),
+            np.append(d2.data, a[far].mean()),
+            np.append(d2.weight, math.sqrt(far.sum())),
+        )
+    full = _data(x[ok], y[ok], vals, k=k)
+    p, cost = _best_way_round(p, d2, full, lo, hi, 1e-2 * sigma**2)
+    rot = None
+    if focal is not None:
+        # Stage 3: the same pixels seen by a camera turned toward the hole's image,
+        # first placed by the oblique projection's offset d (R/f)^2.
+        f = float(focal)
+        x0, y0 = (float(v) / (1.0 + (math.exp(p[2]) / f) ** 2) for v in p[:2])
+        rot = _view(f, x0, y0)
+        n = int(near.sum())
+        xs, ys = d2.xs.copy(), d2.ys.copy()
+        xs[:n], ys[:n] = _to_view(d2.xs[:n], d2.ys[:n], f, rot)
+        p = p.copy()
+        p[:2] = 0.0
+        full = _Data(*_to_view(full.xs, full.ys, f, rot), full.data, full.weight)
+        d3 = _Data(xs, ys, d2.data, d2.weight)
+        p, cost = _best_way_round(p, d3, full, lo, hi, 1e-2 * sigma**2)
+    score = math.sqrt(max(flat_cost - cost, 0.0)) / sigma
+    guess = _summary(p, shadow is not None, sigma, score)
+    if rot is not None:
+        xc, yc = _from_view(float(p[0]), float(p[1]), float(focal), rot)
+        guess = eqx.tree_at(lambda g: (g.x_c, g.y_c), guess, (xc, yc))
+    return guess
+
+
+def _score(p, x, y, v, flat_cost: float, sigma: float) -> float:
+    """$\\sqrt{\\Delta\\chi^2}$ of the model `p` against a flat image, at pixels x, y
+    with values v (2 x 2 area samples)."""
+    d = _data(x, y, v)
+    r = _model(p, d.xs, d.ys) - d.data
+    return math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
+
+
+def _best_way_round(p, d: _Data, full: _Data, lo, hi, tol: float):
+    """The better fit, on the pixels `d`, from `p` and from `p` turned round: the same
+    ridge with the primary and secondary swapped (centre moved by 2 b along psi, b
+    reversed), which an arc offset of a pixel or two, or a frame cut, can leave nearly
+    as good. Compared on all the pixels `full`: a fit may move an arc off the pixels
+    `d`, where it would cost nothing.
+
+    **Returns:** the parameters and their residual sum of squares on `full`."""
+    q = np.asarray(p, float).copy()
+    q[:2] += 2.0 * q[3:5]
+    q[3:5] *= -1.0
+    q[6] = _shape_raw(-1.0)
+    fits = [_lm(p, d, lo, hi, tol)[0], _lm(q, d, lo, hi, tol)[0]]
+    costs = [float(np.sum((_model(v, full.xs, full.ys) - full.data) ** 2)) for v in fits]
+    i = int(np.argmin(costs))
+    return fits[i], costs[i]
+
+
+def _ring_profile(p, x, y):
+    """The ring's model (amplitude 1, floor 0, no shadow) at pixel centres x, y."""
+    q = np.asarray(p, float).copy()
+    q[7], q[8], q[9] = 1.0, 0.0, _NO_SHADOW
+    return _model(q, x[:, None], y[:, None])
+
+
+def _nothing(floor: float, noise: float) -> ArcGuess:
+    """The `ArcGuess` of an image with nothing to fit: NaN geometry, score 0."""
+    nan = math.nan
+    return ArcGuess(nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, floor, nan, noise, 0.0)
+
+
+def _solve_s(target, r, c):
+    """rho (pixels) with s(rho) = target, by bisection in log rho (s increases)."""
+    lo, hi = math.log(1e-6 * r), math.log(1e3 * r)
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _s_np(math.exp(mid), r, c) < target else (lo, mid)
+    return math.exp(0.5 * (lo + hi))
+
+
+def _summary(p, shadow: bool, noise: float, score: float) -> ArcGuess:
+    """The `ArcGuess` of fitted parameters `p`."""
+    r, b, wid = math.exp(p[2]), math.hypot(p[3], p[4]), math.exp(p[5])
+    c = float(_shape_c(p[6]))
+    # Model flux on each side of the line through the centre perpendicular to psi
+    # (frame psi = 0), on a polar grid covering both images.
+    rr = np.linspace(max(r - 12 * wid - 2 * b, 0.02 * r), r + 12 * wid + 2 * b, 600)
+    rg, pg = np.meshgrid(rr, np.linspace(-math.pi, math.pi, 720, endpoint=False))
+    s = _s_np(rg, r, c)
+    g = np.exp(-0.5 * ((s * np.cos(pg) - b) ** 2 + (s * np.sin(pg)) ** 2) / wid**2) * rg
+    side = np.cos(pg) > 0
+    return ArcGuess(
+        x_c=float(p[0]),
+        y_c=float(p[1]),
+        ring_radius=r,
+        ring_width=wid,
+        psi=math.atan2(p[4], p[3]) % (2 * math.pi),
+        outer_radius=_solve_s(b, r, c),
+        inner_radius=_solve_s(-b, r, c),
+        offset=b,
+        shape=c,
+        flux_ratio=float(g[side].sum() / max(g[~side].sum(), 1e-300)),
+        amplitude=float(p[7]),
+        floor=float(p[8]),
+        shadow_radius=float(p[9]) if shadow else math.nan,
+        noise=noise,
+        score=float(score),
+    )
+
+
+# ------------------------------------------------------------- the star's offset
+
+
+def offset_from_radii(rho_outer, rho_inner, distance, focal):
+    """The star's angular offset $\\beta$ from the axis behind the hole, from the radii
+    of its two images (exact escape angle, `jaxlens.trace`).
+
+    A pinhole camera pointed at the hole sees a ray of local angle $\\alpha$ at
+    $\\rho = f \\tan\\alpha$ pixels from the hole's image. The primary image lies where
+    $\\Phi(\\alpha) = \\pi - \\beta$, the secondary where $\\Phi(\\alpha) = \\pi + \\beta$,
+    so $\\beta = (\\Phi(\\alpha_-) - \\Phi(\\alpha_+)) / 2$; where the secondary's ray is
+    captured (inside the shadow), $\\beta = \\pi - \\Phi(\\alpha_+)$ alone. (Weak field:
+    $\\theta_\\pm = (\\beta \\pm \\sqrt{\\beta^2 + 4\\theta_E^2})/2$, so
+    $\\beta = \\theta_+ - |\\theta_-|$.) A centre error $\\delta$ along $\\psi$ moves both
+    radii and $\\beta$ by about $\\delta\\,|d\\Phi/d\\rho|$; it does not cancel.
+
+    **Arguments:**
+    - `rho_outer`, `rho_inner`: radii (pixels from the hole's image) of the primary
+      (outer) and secondary (inner) images; arrays broadcast.
+    - `distance`: camera radius $D$ (units of R_S).
+    - `focal`: focal length $f$ (pixels): $(W/2) / \\tan(\\mathrm{FOV}/2)$.
+
+    **Returns:** $\\beta$ (radians), a float or a numpy array of the broadcast shape;
+    NaN where the primary's ray is captured.
+    """
+    import jaxlens
+
+    with jax.enable_x64(True):
+        ro, ri, d, f = np.broadcast_arrays(
+            *(np.asarray(v, np.float64) for v in (rho_outer, rho_inner, distance, focal))
+        )
+        alpha = np.arctan2(np.stack([ro, ri]), np.stack([f, f]))
+        res = jaxlens.trace(
+            jnp.asarray(alpha), jnp.asarray(np.stack([d, d])), accuracy=1e-12, method="exact"
+        )
+        phi = np.asarray(res.phi)
+        esc = np.asarray(res.escaped)
+    two = 0.5 * (phi[1] - phi[0])
+    one = math.pi - phi[0]
+    beta = np.where(esc[1], two, one)
+    beta = np.where(esc[0], beta, np.nan)
+    return float(beta) if beta.ndim == 0 else beta
+
+
+def source_offset_from_arcs(guess: ArcGuess, distance, focal):
+    """$\\beta$ (radians) from the arcs' radii in `guess` (`offset_from_radii`), for a
+    camera at `distance` (units of R_S) with focal length `focal` (pixels)."""
+    return offset_from_radii(guess.outer_radius, guess.inner_radius, distance, focal)
