@@ -14,8 +14,9 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._scene import Scene
 from . import psf as _psf
+from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
-from .noise import _clipping, _noise_level, clipped_mean
+from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
 from .params import PARAMETERS, apply, values_of
 from .result import _result_name
 from .table import escape_table
@@ -31,7 +32,6 @@ DEFAULT_FREE = (
     "ring_flux",
 )
 _RING_FLUX_PRIOR = 1.0  # standard deviation of the prior N(1, .) on the thin rings' flux
-_CORRELATED = 0.95  # |correlation| above which two loose parameters are not separated
 
 
 class _Problem(eqx.Module):
@@ -317,7 +317,8 @@ def fit(
         raise ValueError("psf_sigma is fitted only for a Gaussian PSF: give psf=<width in px>")
     gray = np.where(valid, img, np.nanmedian(img[valid]))
     lo, hi = _clipping(gray)
-    noise_sigma = float(noise) if isinstance(noise, (int, float)) else _noise_level(gray)
+    sigma_known = isinstance(noise, (int, float))
+    noise_sigma = float(noise) if sigma_known else _noise_level(gray)
     kind = "poisson" if noise == "poisson" else "gaussian"
     if kind == "poisson" and gain is None:
         gain = _gain_estimate(img, valid)
@@ -331,6 +332,11 @@ def fit(
         from .model import _samples_for
 
         prof = _starts._profile(gray)
+        if not sigma_known and (math.isfinite(lo) or math.isfinite(hi)):
+            # Values clipped at the format's range: the noise from the flat sky, which
+            # clipping below the median leaves intact (second differences of clipped
+            # zeros would underestimate it).
+            noise_sigma = _noise_clipped(gray, prof, lo, hi)
         k = int(supersample) if supersample is not None else _samples_for(prof.ring_width, block)
         base = values_of(scene)
         cam = Camera(base["distance"], base["fov"], w, h, yaw=cam0.yaw, pitch=cam0.pitch,
@@ -380,14 +386,27 @@ def fit(
         args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(weight), clip,
                 jnp.asarray(gain if gain is not None else 1.0))  # fmt: skip
         theta0 = np.asarray([PARAMETERS[n].transform.inverse(start[n]) for n in free])
-        # --- the source: the azimuth of the brighter arc, its offset by a scan.
+        # --- the hole's image and the source: the arcs' centre, azimuth and radii
+        # (`find_arcs`), the offset refined by a scan of the loss along the azimuth.
+        f_px = 0.5 * w / math.tan(0.5 * start["fov"])
+        arcs = find_arcs(np.where(valid, img, np.nan), focal=f_px)
+        found = arcs.score > 10.0
+        for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
+            if name in free and name not in init and found:
+                theta0[free.index(name)] = math.atan(-c / f_px)  # the view turned away
         if {"source_lon", "source_lat"} <= set(free) and not ({"source_lon", "source_lat"}
                                                               & set(init)):  # fmt: skip
-            f_px = 0.5 * w / math.tan(0.5 * start["fov"])
-            psi, asym = _source_start(gray, valid, start.get("floor", 0.0), f_px,
-                                      prof.ring_radius)  # fmt: skip
+            if found:
+                psi = arcs.psi
+                beta = float(source_offset_from_arcs(arcs, start["distance"], f_px))
+            else:
+                psi = _source_start(gray, valid, start.get("floor", 0.0), f_px,
+                                    prof.ring_radius)[0]  # fmt: skip
+                beta = math.nan
+            offsets = [0.0] + list(np.geomspace(0.05, 6.0, 8) * math.pi / 180.0)
+            if math.isfinite(beta) and beta > 0:
+                offsets += list(beta * np.asarray([0.6, 0.8, 1.0, 1.25, 1.6]))
             i_lon, i_lat = free.index("source_lon"), free.index("source_lat")
-            offsets = [0.0] + list(np.geomspace(0.05, 6.0, 15) * math.pi / 180.0)
             cands = np.repeat(theta0[None], len(offsets), axis=0)
             cands[:, i_lon] = np.asarray(offsets) * math.cos(psi)
             cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
@@ -395,9 +414,27 @@ def fit(
             theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
         if atol is None:
             atol = 1e-6
-        theta, r, jac, model, result, steps = _solve(
-            jnp.asarray(theta0), args, prob, jnp.asarray(rtol), jnp.asarray(atol), int(max_steps)
-        )
+        clipped = math.isfinite(lo) or math.isfinite(hi)
+        passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
+        for _ in range(passes):
+            theta, r, jac, model, result, steps = _solve(
+                jnp.asarray(theta0),
+                args,
+                prob,
+                jnp.asarray(rtol),
+                jnp.asarray(atol),
+                int(max_steps),
+            )
+            if passes == 2:
+                # The clipped model's noise, re-estimated from the residuals well inside
+                # (lo, hi), for the second pass (same program: the noise is an argument).
+                m_np = np.asarray(model)
+                inside = (count > 0) & (m_np > lo + 4 * noise_sigma) & (m_np < hi - 4 * noise_sigma)
+                if inside.sum() > 50:
+                    noise_sigma = float(np.std((data - m_np)[inside] * np.sqrt(count[inside])))
+                    clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
+                    args = args[:5] + (clip, args[6])
+                theta0 = np.asarray(theta)
         theta, r = np.asarray(theta), np.asarray(r).ravel()
         jac = np.asarray(jac).reshape(r.size, -1)
         model = np.asarray(model)
@@ -406,7 +443,7 @@ def fit(
                                      if PARAMETERS[n].where or "source" in n})  # fmt: skip
     return _finish(fitted, free, phys, start, theta, r, jac, result, steps, model, data, count,
                    kind, noise_sigma, gain, block, k, prob, t_start,
-                   isinstance(noise, (int, float)))  # fmt: skip
+                   sigma_known)  # fmt: skip
 
 
 def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data, count, kind,
@@ -444,18 +481,22 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
     at_bound = [n for n in free if PARAMETERS[n].transform.at_bound(phys[n])]
     if at_bound:
         notes.append("at the bound of its range: " + ", ".join(at_bound))
-    # Two parameters are not separated when they are strongly correlated and the image
-    # leaves both loose (relative errors above 20 %); D and FOV, always correlated,
-    # are separated by the ring and the shadow as long as their errors are small.
+    # Parameters the image does not separate: each loose (relative error above 20 %)
+    # and mostly explained by the others (variance inflation 1 / (1 - R^2) above 100,
+    # R the multiple correlation with the rest); D and FOV, always correlated, are
+    # separated by the ring and the shadow as long as their errors are small.
     rel = [err[i] / max(abs(phys[n]), 1e-300) for i, n in enumerate(free)]
-    pairs = [(free[i], free[j], corr[i, j]) for i in range(p) for j in range(i + 1, p)
-             if np.isfinite(corr[i, j]) and abs(corr[i, j]) > _CORRELATED
-             and min(rel[i], rel[j]) > 0.2]  # fmt: skip
-    if pairs or not math.isfinite(cond) or cond > 1e14:
+    vif = np.full(p, np.nan)
+    if np.all(np.isfinite(corr)):
+        vif = np.diag(np.linalg.pinv(corr))
+    group = [n for i, n in enumerate(free) if rel[i] > 0.2 and vif[i] > 100.0]
+    if len(group) >= 2 or not math.isfinite(cond) or cond > 1e14:
         degenerate = True
-        if pairs:
-            notes.append("the image cannot separate " + "; ".join(
-                f"{a} and {b} (correlation {c:+.3f})" for a, b, c in pairs))  # fmt: skip
+        if len(group) >= 2:
+            names = ", ".join(group[:-1]) + " and " + group[-1]
+            worst = max(vif[free.index(n)] for n in group)
+            notes.append(f"the image cannot separate {names} (errors above 20 %, variance "
+                         f"inflation up to {worst:.3g}): fix one of them")  # fmt: skip
         else:
             notes.append(f"the curvature is singular (condition {cond:.2g})")
     if kind == "gaussian" and chi2_dof > 4.0:
@@ -472,8 +513,7 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
         if n in free or n in ("distance", "fov", "source_lon", "source_lat", "sigma")
     }
     errors = {n: float(e) for n, e in zip(free, err)}
-    pad = prob.pad
-    model_c = model[pad : model.shape[0] - pad, pad : model.shape[1] - pad] if pad else model
+    model_c = model  # the PSF's margin is cropped by the convolution
     resid = np.where(count > 0, data - model_c, np.nan)
     return Fit(
         scene=scene, names=free, values=values, errors=errors, covariance=cov,

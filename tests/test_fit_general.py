@@ -1,0 +1,111 @@
+"""The general fit (`jl.fit`, `jaxlens fit`): arcs of an offset star through a PSF with a
+mask, Poisson counts, a degenerate pair named, bad input refused.
+
+The images are rendered by the library (area-exact sampling, `supersample=4`, so a
+different rule from the fit's) and blurred by scipy's Gaussian filter, not by the
+fit's FFT code.
+"""
+
+import json
+import math
+
+import jax
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+import jaxlens as jl
+
+W, H, MARGIN = 80, 64, 8
+
+
+def _arcs(d, fov_deg, lon_deg, lat_deg, sigma_deg, *, psf_px=0.0, floor=0.05, amp=0.8):
+    """The library's image of an offset star, rendered with a margin so that the PSF
+    (scipy) sees the light beyond the frame, then cropped to W x H."""
+    fov = math.radians(fov_deg)
+    f = 0.5 * W / math.tan(0.5 * fov)
+    wide = 2.0 * math.atan(0.5 * (W + 2 * MARGIN) / f)
+    cam = jl.Camera(d, wide, W + 2 * MARGIN, H + 2 * MARGIN, supersample=4, sampling="gauss")
+    sky = jl.GaussianStar(math.radians(sigma_deg), amp, lon=math.radians(lon_deg),
+                          lat=math.radians(lat_deg)) + jl.Uniform(floor)  # fmt: skip
+    with jax.enable_x64(True):
+        img = np.asarray(jl.render_array(jl.Scene(cam, sky)))[..., 0]
+    if psf_px:
+        img = gaussian_filter(img, psf_px, mode="nearest", truncate=6.0)
+    return img[MARGIN:-MARGIN, MARGIN:-MARGIN]
+
+
+def _model():
+    return jl.Scene(jl.Camera(20.0, 1.0, 8, 8), jl.GaussianStar(0.01) + jl.Uniform(0.0))
+
+
+def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys):
+    # D and FOV within 1 % (the issue's bar) and within 4 standard errors; the source
+    # within 0.05 deg. Truth and model differ by their rules (k = 4 against the fit's
+    # own k) and the scipy blur's sampling of the Gaussian, both far below the noise.
+    truth = dict(d=18.0, fov_deg=50.0, lon_deg=1.5, lat_deg=0.8, sigma_deg=0.7)
+    rng = np.random.default_rng(3)
+    img = _arcs(**truth, psf_px=1.5) + rng.normal(0.0, 0.004, (H, W))
+    img[5:15, 60:75] = np.nan  # bad pixels, as a FITS or EXR file carries them
+    path = tmp_path / "arcs.exr"
+    jl.write_image(path, np.repeat(img[..., None], 3, axis=-1).astype(np.float32))
+    from jaxlens.cli import main
+
+    assert main(["fit", str(path), "--psf-sigma-px", "1.5", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("distance", "distance_err", "fov_deg", "fov_deg_err", "source_lon_deg",
+                "source_lat_deg", "source_lon_deg_err", "source_lat_deg_err", "sigma_deg",
+                "converged", "degenerate", "message"):  # fmt: skip
+        assert key in out, key
+    assert out["converged"] and not out["degenerate"], out["message"]
+    for name, true in (("distance", truth["d"]), ("fov_deg", truth["fov_deg"])):
+        err = abs(out[name] - true)
+        assert err < 0.01 * true and err < 4.0 * out[f"{name}_err"], (name, out[name])
+    assert abs(out["source_lon_deg"] - truth["lon_deg"]) < 0.05
+    assert abs(out["source_lat_deg"] - truth["lat_deg"]) < 0.05
+
+
+def test_poisson_counts_with_estimated_gain():
+    # Counts = gain x value drawn from a Poisson law; the gain is estimated from the
+    # image's mean-variance relation (within 25 %: 8 x 8 tiles of the flat sky), the
+    # fit is the Poisson likelihood's: D, FOV within 1 % and 4 standard errors.
+    gain = 400.0
+    rng = np.random.default_rng(5)
+    clean = _arcs(22.0, 45.0, -0.6, 0.3, 0.8, floor=0.1)
+    img = rng.poisson(gain * clean) / gain
+    fit = jl.fit(_model(), img, noise="poisson")
+    assert abs(fit.gain / gain - 1.0) < 0.25, fit.gain
+    assert fit.converged, fit.message
+    for name, true in (("distance", 22.0), ("fov", math.radians(45.0))):
+        err = abs(fit.values[name] - true)
+        assert err < 0.01 * true and err < 4.0 * fit.errors[name], (name, fit.values[name])
+    assert abs(math.degrees(fit.values["source_lon"]) + 0.6) < 0.05
+    assert 0.5 < fit.chi2_dof < 1.5  # deviance per degree of freedom of Poisson counts
+    assert np.isnan(fit.residuals).sum() == 0 and fit.residuals.shape == (H, W)
+
+
+def test_psf_and_star_width_named_when_not_separated():
+    # A ring whose radial width is the star's (0.15 deg, ~0.1 px radially here) and the
+    # PSF's (1.2 px) in quadrature: with both free the image fixes the PSF's width and
+    # the ring's flux, A sigma, but not the star's width: the verdict must say so
+    # (measured: sigma 0.64 +- 0.39 deg, correlation -0.999 with A, 0.9 with the PSF).
+    rng = np.random.default_rng(7)
+    img = _arcs(20.0, 60.0, 0.0, 0.0, 0.15, psf_px=1.2) + rng.normal(0.0, 0.02, (H, W))
+    fit = jl.fit(_model(), img, psf=1.0,
+                 free=("distance", "fov", "sigma", "brightness", "floor", "psf_sigma"))  # fmt: skip
+    assert fit.degenerate
+    assert "cannot separate sigma and brightness" in fit.message, fit.message
+    i, j = fit.names.index("sigma"), fit.names.index("psf_sigma")
+    assert abs(fit.correlation[i, j]) > 0.8
+
+
+def test_bad_input_is_refused():
+    img = np.zeros((16, 16))
+    with pytest.raises(ValueError, match="unknown parameter"):
+        jl.fit(_model(), img, free=("distance", "mass"))
+    with pytest.raises(ValueError, match="Gaussian PSF"):
+        jl.fit(_model(), img, free=("distance", "psf_sigma"))
+    with pytest.raises(ValueError, match="mask"):
+        jl.fit(_model(), img, mask=np.zeros((4, 4), bool))
+    with pytest.raises(ValueError, match="valid pixels"):
+        jl.fit(_model(), np.full((16, 16), np.nan))
