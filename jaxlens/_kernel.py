@@ -18,6 +18,11 @@ under `grad`) is this function on a block of rows, with the stages its `Plan` na
 6. **disk**: rays that can reach the disk are followed through its plane.
 7. the mean over each pixel's samples.
 
+With `Camera(..., sampling="gauss")` the pixels are area-exact instead (`cells`): the
+$k \\times k$ nodes of a Gauss-Legendre rule, the exact share of each cell outside the
+shadow edge, and the thin rings of compact sources (`AbstractCompactSky.crossing`)
+integrated across the cells; a fit differentiates this path.
+
 Stages are Python `if`s on the plan, never on traced values: a stage the scene does
 not name is not in the compiled program. Each runs in `jax.named_scope("jaxlens.<stage>")`.
 
