@@ -81,6 +81,7 @@ from ._effects import (
     static_blueshift as static_blueshift,
 )
 from ._fit import (
+    DEFAULT_FREE as DEFAULT_FREE,
     RS_SUN_M as RS_SUN_M,
     Fit as Fit,
     RingFit as RingFit,

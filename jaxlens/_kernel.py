@@ -354,7 +354,7 @@ def _sky_radiance(sky, plan, n, g):
         return sky.shifted(n, g, plan.redshift)
 
 
-def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, references=None):
+def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, references=None, rings=True):
     """Area-exact radiance of square pixel cells (the `"gauss"` sampling).
 
     Each cell of side `side` (pixels) with top-left corner `(x0, y0)` (image-plane
@@ -373,7 +373,9 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
     `RayMap` of the distance in the camera's dtype), `x0`, `y0` (one shape), `side`
     (scalar, pixels), `k` (the rule's order; default the camera's `supersample`);
     `references`: `ring_references(ray_map, dtype)` when the caller evaluates many
-    batches of cells of one scene (computed here otherwise). The scene's values are
+    batches of cells of one scene (computed here otherwise); `rings=False` leaves the
+    thin rings out (`thin` is then 0: a coarse search that compares the primary
+    image only). The scene's values are
     the caller's to check (`checked`), outside any loop over batches.
 
     **Returns:** `(main, thin)` of shape `x0.shape + (3,)`: the cells' mean radiance
@@ -439,7 +441,7 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
     main = jnp.sum((w2 * cover)[..., None] * rad, axis=(-3, -2))
 
     thin = jnp.zeros_like(main)
-    if compact:
+    if compact and rings:
         if ray_map is None:
             raise ValueError("thin rings of compact sources need the table geometry")
         with jax.named_scope("jaxlens.thin_rings"):

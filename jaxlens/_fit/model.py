@@ -32,7 +32,9 @@ def basis_scene(distance, focal, sigma, width: int, k: int) -> Scene:
     return Scene(cam, sky)
 
 
-def _pixel_basis(table, focal, sigma, x0, y0, *, width, block, k, chunk_samples=1 << 16):
+def _pixel_basis(
+    table, focal, sigma, x0, y0, *, width, block, k, chunk_samples=1 << 16, rings=True
+):
     """Per-pixel area averages of the two basis images: the star's light (unit peak
     brightness) and the floor's coverage, by the renderer's area-exact sampling
     (`Camera(..., sampling="gauss")`, the kernel's `cells`) of `basis_scene`.
@@ -41,7 +43,7 @@ def _pixel_basis(table, focal, sigma, x0, y0, *, width, block, k, chunk_samples=
     full image), `sigma` (radians), `x0`, `y0`: left and top edges of each (binned)
     pixel in full-image pixels from the image centre ($x$ right, $y$ up); `width` (of
     the full image, pixels); `block`: side of a pixel in full-image pixels; `k`: the
-    rule's order.
+    rule's order; `rings`: include the thin relativistic rings (else `t` is 0).
 
     **Returns:** `(g, t, c)` of the shape of `x0`: the primary image, the images of
     order 1 and 2 (both per unit peak brightness) and the floor's coverage.
@@ -56,10 +58,12 @@ def _pixel_basis(table, focal, sigma, x0, y0, *, width, block, k, chunk_samples=
     x0 = jnp.pad(x0, (0, pad)).reshape(chunks, per)
     y0 = jnp.pad(y0, (0, pad)).reshape(chunks, per)
 
-    refs = _kernel.ring_references(table, table.phi.dtype)
+    refs = _kernel.ring_references(table, table.phi.dtype) if rings else None
 
     def one(xy):
-        main, thin = _kernel.cells(scene, plan, table, xy[0], xy[1], block, k, references=refs)
+        main, thin = _kernel.cells(
+            scene, plan, table, xy[0], xy[1], block, k, references=refs, rings=rings
+        )
         return main[:, 0], thin[:, 0], main[:, 1]
 
     out = jax.lax.map(one, (x0, y0))
