@@ -387,7 +387,7 @@ def test_cli(tmp_path, capsys, monkeypatch):
 
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--distance-m", "6e5"]) == 0
     text = capsys.readouterr().out
-    assert "distance  D" in text and "M_sun" in text
+    assert "distance     = " in text and "M_sun" in text and "source_lon" in text
 
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--distance-m", "6e5",
                      "--json"]) == 0  # fmt: skip

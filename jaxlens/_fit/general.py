@@ -331,7 +331,20 @@ def fit(
         from . import starts as _starts
         from .model import _samples_for
 
+        span = float(np.max(img[valid]) - np.min(img[valid]))
+        if span <= 1e-12 * max(1.0, abs(float(np.max(img[valid])))):
+            raise ValueError(f"image is blank (every valid pixel is {float(img[valid][0]):.6g}): "
+                             "no ring to fit")  # fmt: skip
         prof = _starts._profile(gray)
+        if (
+            not prof.peak > 8.0 * prof.peak_noise
+            and find_arcs(np.where(valid, img, np.nan)).score <= 10
+        ):
+            raise ValueError(
+                f"no ring or arcs found: the radial profile about the image centre peaks "
+                f"{prof.peak:.3g} above its floor, within 8 times its noise "
+                f"({prof.peak_noise:.3g}), and no arcs stand out of the noise"
+            )
         if not sigma_known and (math.isfinite(lo) or math.isfinite(hi)):
             # Values clipped at the format's range: the noise from the flat sky, which
             # clipping below the median leaves intact (second differences of clipped
