@@ -181,15 +181,25 @@ def test_disk_in_an_image():
     img = jl.render(scene)
     rm = eqx.filter_jit(jl.RayMap.build)(cam.distance, accuracy=scene.accuracy)
     masked_plan = dataclasses.replace(plan, disk_rays=None)
-    masked = jl.render_array(scene, plan=masked_plan, ray_map=rm)
+
+    # One compiled program: the masked image (all rays through the disk stage) at a
+    # disk temperature, its pixel sum and the sum's reverse-mode derivative in it.
+    @jax.jit
+    def masked_image_and_grad(t):
+        def total(t):
+            s = scene.replace(disk=eqx.tree_at(lambda k: k.temperature, disk, t))
+            image = jl.render_array(s, plan=masked_plan, ray_map=rm)
+            return jnp.sum(image), image
+
+        return jax.value_and_grad(total, has_aux=True)(t)
+
+    assert float(disk.temperature) == 8000.0  # the image below is the scene's own disk
+    (_, masked), g = masked_image_and_grad(8000.0)
     np.testing.assert_allclose(img, np.asarray(masked), rtol=1e-6, atol=1e-9)  # f32 output
     assert (img.sum(-1) > 0.05).sum() > 100  # the disk is there
 
-    @jax.jit
     def loss(t):
-        s = scene.replace(disk=eqx.tree_at(lambda k: k.temperature, disk, t))
-        return jnp.sum(jl.render_array(s, plan=masked_plan, ray_map=rm))
+        return float(masked_image_and_grad(t)[0][0])
 
-    g = float(jax.jit(jax.grad(loss))(8000.0))
-    fd = (float(loss(8000.0 * (1 + 1e-5))) - float(loss(8000.0 * (1 - 1e-5)))) / (0.16)
-    assert g == pytest.approx(fd, rel=1e-4)  # piecewise-linear colour table, tiny step
+    fd = (loss(8000.0 * (1 + 1e-5)) - loss(8000.0 * (1 - 1e-5))) / (0.16)
+    assert float(g) == pytest.approx(fd, rel=1e-4)  # piecewise-linear colour table, tiny step

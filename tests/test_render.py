@@ -30,6 +30,11 @@ from jaxlens import (
 
 CHUNK_SAMPLES = 1 << 21  # render's default block size (area samples)
 
+# One compiled table builder for the module (the distance is an argument). Tests that
+# hand render_array a static camera's table pass one built here: render_array would
+# build the same table inside each of its programs, recompiling RayMap.build every time.
+_ray_map = eqx.filter_jit(RayMap.build)
+
 
 @eqx.filter_jit
 def _sky_eval(sky, n):
@@ -112,12 +117,13 @@ def test_fast_path_equals_general_path_and_chunks_do_not_matter():
     # The centred fast path (mirrored halves, paired row blocks) against the general
     # per-sample path of render_array, odd and even sizes; blocks of any size give the
     # same pixels (identical arithmetic, so float32 output round-off only: 1e-7).
+    rm = _ray_map(jnp.asarray(12.0), accuracy=1e-8)  # the table render builds for D = 12
     for w, h, k in [(21, 15, 3), (16, 12, 2)]:
         cam = Camera(12.0, math.radians(70.0), w, h, supersample=k)
         whole = render(cam, SKY)
         # A yaw of 1e-300 rad is no turn at all but forces the per-sample path.
         oriented = eqx.tree_at(lambda c: c.yaw, cam, jnp.asarray(1e-300))
-        general = np.asarray(eqx.filter_jit(render_array)(oriented, SKY))
+        general = np.asarray(eqx.filter_jit(render_array)(oriented, SKY, ray_map=rm))
         np.testing.assert_allclose(whole, general, atol=1e-6)
         for chunk in (w * k * k, 5 * w * k * k + 3):
             np.testing.assert_allclose(render(cam, SKY, chunk_samples=chunk), whole, atol=1e-7)
@@ -189,9 +195,11 @@ def test_panorama_reduces_to_the_undistorted_panorama_far_away():
     assert errors[2] < 1e-5
 
 
+FRAME = Camera(20.0, math.radians(60.0), 12, 8, supersample=2)  # two frames: one program
+
+
 def test_frames_are_one_batched_render():
-    cam = Camera(20.0, math.radians(60.0), 12, 8, supersample=2)
-    cams = approach(cam, [30.0, 10.0, 4.0])
+    cams = approach(FRAME, [30.0, 10.0, 4.0])
     frames = render_frames(cams, SKY, chunk_samples=2 * 12 * 8 * 4)  # two frames a block
     assert frames.shape == (3, 8, 12, 3) and frames.dtype == np.float32
     for i, d in enumerate([30.0, 10.0, 4.0]):
@@ -199,12 +207,19 @@ def test_frames_are_one_batched_render():
         np.testing.assert_allclose(frames[i], single, atol=1e-7)
 
 
+# A small float32 scene rendered in many blocks by the memory and the progress tests:
+# one compiled block program for both.
+SMALL_SKY = GaussianStar(np.float32(0.02)) + Uniform(np.float32(0.1))
+SMALL_CAM = Camera(20.0, 1.0, 16, 10, dtype=jnp.float32)
+SMALL_CHUNK = 16 * 2 * 2  # two mirrored row pairs a block: 3 blocks
+
+
 def test_memory_is_bounded_by_the_block_size():
     # An 8192 x 8192 render is split into blocks of at most CHUNK_SAMPLES samples; XLA's
     # accounting of the compiled block (compiled, not run) is independent of the image
     # height and far below the 24 GiB budget; the output image itself is 0.8 GB.
     big = Camera(20.0, 1.0, 8192, 8192, supersample=2, dtype=jnp.float32)
-    sky = GaussianStar(np.float32(0.02)) + Uniform(np.float32(0.1))
+    sky = SMALL_SKY
     plan = jl.plan(jl.Scene(big, sky))
     assert plan.samples <= CHUNK_SAMPLES and plan.rows < 8192 and plan.blocks > 1
     m_big = block_memory(big, sky)
@@ -214,15 +229,15 @@ def test_memory_is_bounded_by_the_block_size():
     shorter = jl.plan(jl.Scene(Camera(20.0, 1.0, 8192, 2048, supersample=2), sky))
     assert shorter.kernel_key() == plan.kernel_key() and shorter.samples == plan.samples
     # And a render in many small blocks equals the one-block render (rows and frames).
-    cam = Camera(20.0, 1.0, 16, 10, dtype=jnp.float32)
-    np.testing.assert_array_equal(render(cam, sky, chunk_samples=16 * 2 * 2), render(cam, sky))
+    cam = SMALL_CAM
+    np.testing.assert_array_equal(render(cam, sky, chunk_samples=SMALL_CHUNK), render(cam, sky))
 
 
 def test_progress_bar_on_request(capsys):
-    cam = Camera(20.0, 1.0, 16, 10)
-    render(cam, SKY, chunk_samples=32, progress=True)
+    assert jl.plan(jl.Scene(SMALL_CAM, SMALL_SKY), chunk_samples=SMALL_CHUNK).blocks > 1
+    render(SMALL_CAM, SMALL_SKY, chunk_samples=SMALL_CHUNK, progress=True)
     assert "render" in capsys.readouterr().err
-    render(cam, SKY, chunk_samples=32, progress=False)
+    render(SMALL_CAM, SMALL_SKY, chunk_samples=SMALL_CHUNK, progress=False)
     assert capsys.readouterr().err == ""
 
 
@@ -232,17 +247,20 @@ def test_render_array_gradients_match_finite_differences():
     # smooth sky: truncation ~1e-12, round-off ~1e-10 relative; the coverage ramp at
     # the shadow edge is piecewise linear and its kinks are not crossed at this step.
     # Tolerance 1e-5 relative. (The gradient with respect to the distance goes through
-    # RayMap.build; it compiles for minutes, so it is left to the fit's tests.)
-    def loss(fov, lon):
+    # RayMap.build, checked in test_hard_cases and the fit's tests; here the distance is
+    # fixed, so the table is an input built once, as render_array would build it.)
+    rm = _ray_map(jnp.asarray(8.0), accuracy=1e-8)
+
+    def loss(fov, lon, m):
         cam = Camera(8.0, fov, 12, 8, supersample=2)
         sky = GaussianStar(math.radians(4.0), 1.0, lon=lon) + Uniform(0.05)
-        return jnp.sum(render_array(cam, sky) ** 2)
+        return jnp.sum(render_array(cam, sky, ray_map=m) ** 2)
 
     vg = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))  # one compiled program
-    g = vg(1.2, 0.05)[1]
+    g = vg(1.2, 0.05, rm)[1]
 
     def f(fov, lon):
-        return vg(fov, lon)[0]
+        return vg(fov, lon, rm)[0]
 
     h = 1e-6
     fd = [(f(1.2 + h, 0.05) - f(1.2 - h, 0.05)) / (2 * h),
@@ -254,7 +272,7 @@ def test_render_array_gradients_match_finite_differences():
 
 def test_ray_map_in_float32_keeps_its_accuracy():
     d = 20.0
-    rm = eqx.filter_jit(RayMap.build)(jnp.asarray(d), accuracy=1e-8)
+    rm = _ray_map(jnp.asarray(d), accuracy=1e-8)
     a_sh = float(rm.alpha_sh)
     alpha = a_sh + np.geomspace(1e-9, math.pi - a_sh - 1e-9, 4000)
     ev = eqx.filter_jit(lambda m, a: m.escape_angle(a))
@@ -312,7 +330,8 @@ def test_sky_directions_are_unit_vectors_and_shadow_is_covered():
 
 
 def test_render_array_rejects_a_batch_and_render_takes_it_as_frames():
-    cam = approach(Camera(20.0, 1.0, 4, 4), [10.0, 20.0])
+    # Two frames of FRAME: the block program of test_frames_are_one_batched_render.
+    cam = approach(FRAME, [10.0, 20.0])
     with pytest.raises(ValueError, match="one camera"):
         render_array(cam, SKY)
-    assert render(cam, SKY).shape == (2, 4, 4, 3)
+    assert render(cam, SKY).shape == (2, 8, 12, 3)
