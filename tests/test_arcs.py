@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxlens as jl
-from jaxlens._fit.arcs import find_arcs, offset_from_radii, source_offset_from_arcs
+from jaxlens import find_arcs, offset_from_radii, source_offset_from_arcs
 
 W, H = 128, 96
 
@@ -263,20 +263,3 @@ def test_bad_arguments():
         find_arcs(np.zeros((20, 20)), noise=-1.0)
     with pytest.raises(ValueError, match="focal"):
         find_arcs(np.zeros((20, 20)), focal=0.0)
-
-
-def test_model_jacobian_matches_finite_differences():
-    # The fit's hand-derived Jacobian against central differences (step 1e-6 of each
-    # parameter: truncation ~1e-12, rounding ~1e-16 / 1e-6 = 1e-10 of the values ~10).
-    from jaxlens._fit.arcs import _data, _model
-
-    rng = np.random.default_rng(0)
-    d = _data(rng.uniform(-50, 50, 2000), rng.uniform(-50, 50, 2000), np.zeros(2000), k=3)
-    for r_sh in (8.0, -10.0):  # with a shadow and without
-        p = np.array([1.3, -2.1, math.log(30.0), 3.0, -2.0, math.log(2.0), 0.4, 1.2, 0.05, r_sh])
-        _, jac = _model(p, d.xs, d.ys, jac=True)
-        for i in range(p.size):
-            step = np.zeros(p.size)
-            step[i] = 1e-6 * max(1.0, abs(p[i]))
-            fd = (_model(p + step, d.xs, d.ys) - _model(p - step, d.xs, d.ys)) / (2 * step[i])
-            np.testing.assert_allclose(jac[:, i], fd, atol=1e-7)

@@ -2,8 +2,7 @@
 view against astropy's own projections, bad pixels, scaled integers, cubes, HDU choice,
 header keywords and the errors.
 
-Every file is written with astropy in `tmp_path`. The module is not exported from
-`jaxlens` yet, so it is imported from its private path.
+Every file is written with astropy in `tmp_path`.
 """
 
 import builtins
@@ -16,8 +15,7 @@ import pytest
 fits = pytest.importorskip("astropy.io.fits")
 from astropy.wcs import WCS  # noqa: E402
 
-from jaxlens._fit.fits import FitsImage, read_fits  # noqa: E402
-from jaxlens._io import MissingExtraError  # noqa: E402
+from jaxlens import FitsImage, MissingExtraError, read_fits  # noqa: E402
 
 ARCSEC = math.pi / (180.0 * 3600.0)
 

@@ -14,7 +14,7 @@ import pytest
 from scipy import ndimage
 from scipy.stats import norm
 
-from jaxlens._fit.psf import convolve, gaussian_otf, image_otf, psf_margin
+from jaxlens import convolve_psf, gaussian_otf, image_otf, psf_margin
 
 EPS64 = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)
@@ -51,7 +51,7 @@ def test_gaussian_otf_matches_scipy_gaussian_filter(sigma):
     # aliasing bound, plus FFT round-off.
     rng = np.random.default_rng(0)
     img = rng.random((70, 90))
-    out = np.asarray(convolve(img, gaussian_otf(img.shape, sigma), pad=0))
+    out = np.asarray(convolve_psf(img, gaussian_otf(img.shape, sigma), pad=0))
     ref = ndimage.gaussian_filter(img, sigma, mode="wrap", truncate=15.0)
     tol = _alias_bound(sigma) * np.linalg.norm(img) + 100 * EPS64
     assert np.max(np.abs(out - ref)) < tol
@@ -107,14 +107,14 @@ def test_margin_bounds_the_wrap_around_error(nsigma):
     pad = psf_margin(sigma, nsigma=nsigma)
     assert pad == math.ceil(nsigma * sigma)
     model = scene[margin - pad : margin + frame[0] + pad, margin - pad : margin + frame[1] + pad]
-    out = np.asarray(convolve(model, gaussian_otf(model.shape, sigma), pad=pad))
+    out = np.asarray(convolve_psf(model, gaussian_otf(model.shape, sigma), pad=pad))
     assert out.shape == frame
     bound = 2.0 * _outside_square(sigma, pad) * scene.max() + _alias_bound(sigma) * 50.0
     err = np.max(np.abs(out - truth))
     assert err < bound
     # without a margin the wrapped light of the edge sources is visible
     bare = scene[margin : margin + frame[0], margin : margin + frame[1]]
-    no_margin = np.asarray(convolve(bare, gaussian_otf(bare.shape, sigma), pad=0))
+    no_margin = np.asarray(convolve_psf(bare, gaussian_otf(bare.shape, sigma), pad=0))
     assert np.max(np.abs(no_margin - truth)) > 100 * bound
 
 
@@ -131,7 +131,7 @@ def test_odd_image_psf_matches_direct_convolution(psf_shape):
     pad = psf_margin(psf)
     assert pad == max(psf_shape) // 2
     img = rng.random((40 + 2 * pad, 50 + 2 * pad))
-    out = np.asarray(convolve(img, image_otf(img.shape, psf), pad=pad))
+    out = np.asarray(convolve_psf(img, image_otf(img.shape, psf), pad=pad))
     ref = ndimage.convolve(img, psf / psf.sum(), mode="constant", cval=0.0)[pad:-pad, pad:-pad]
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e3 * EPS64 * np.abs(ref).max())
 
@@ -171,7 +171,7 @@ def test_symmetric_psf_does_not_shift_a_point_source(psf_shape):
     psf = np.exp(-(((y - (h - 1) / 2) / 1.2) ** 2 + ((x - (w - 1) / 2) / 2.0) ** 2) / 2.0)
     at = (20, 23)
     img = _point_source((41, 47), at)
-    out = np.asarray(convolve(img, image_otf(img.shape, psf), pad=0))
+    out = np.asarray(convolve_psf(img, image_otf(img.shape, psf), pad=0))
     np.testing.assert_allclose(out, out[::-1, ::-1], rtol=0, atol=100 * EPS64)
     assert np.unravel_index(np.argmax(out), out.shape) == at
     np.testing.assert_allclose(_centroid(out), at, rtol=0, atol=1e-12)
@@ -184,9 +184,9 @@ def test_middle_of_an_off_centre_odd_psf_moves_the_image_by_the_offset():
     psf = np.zeros((5, 5))
     psf[3, 0] = 1.0
     img = _point_source((30, 31), (12, 15))
-    moved = np.asarray(convolve(img, image_otf(img.shape, psf), pad=0))
+    moved = np.asarray(convolve_psf(img, image_otf(img.shape, psf), pad=0))
     np.testing.assert_allclose(moved, _point_source((30, 31), (13, 13)), rtol=0, atol=10 * EPS64)
-    kept = np.asarray(convolve(img, image_otf(img.shape, psf, centre="centroid"), pad=0))
+    kept = np.asarray(convolve_psf(img, image_otf(img.shape, psf, centre="centroid"), pad=0))
     np.testing.assert_allclose(kept, img, rtol=0, atol=100 * EPS64)
     assert psf_margin(psf, centre="centroid") == 4  # the centroid is 4 columns from the edge
 
@@ -202,9 +202,9 @@ def test_centroid_centre_keeps_an_asymmetric_psf_from_shifting():
     )
     at = (32, 33)
     img = _point_source((65, 67), at)
-    out = np.asarray(convolve(img, image_otf(img.shape, psf, centre="centroid"), pad=0))
+    out = np.asarray(convolve_psf(img, image_otf(img.shape, psf, centre="centroid"), pad=0))
     np.testing.assert_allclose(_centroid(out), at, rtol=0, atol=1e-8)
-    plain = np.asarray(convolve(img, image_otf(img.shape, psf), pad=0))
+    plain = np.asarray(convolve_psf(img, image_otf(img.shape, psf), pad=0))
     assert np.max(np.abs(np.subtract(_centroid(plain), at))) > 0.1  # the light's offset
 
 
@@ -229,10 +229,10 @@ def test_flux_is_conserved(otf_of):
     # cutouts cut off (e^-18 of the peak).
     rng = np.random.default_rng(2)
     img = rng.random((50, 64))
-    out = np.asarray(convolve(img, otf_of(img.shape), pad=0))
+    out = np.asarray(convolve_psf(img, otf_of(img.shape), pad=0))
     np.testing.assert_allclose(out.sum(), img.sum(), rtol=100 * EPS64)
     src = _point_source((50, 64), (25, 30))
-    crop = np.asarray(convolve(src, otf_of(src.shape), pad=12))
+    crop = np.asarray(convolve_psf(src, otf_of(src.shape), pad=12))
     assert abs(crop.sum() - 1.0) < 1e-8
 
 
@@ -240,7 +240,7 @@ def test_flux_is_conserved(otf_of):
 
 
 def _loss(sigma, img, weight, pad):
-    return jnp.sum(weight * convolve(img, gaussian_otf(img.shape, sigma), pad=pad))
+    return jnp.sum(weight * convolve_psf(img, gaussian_otf(img.shape, sigma), pad=pad))
 
 
 def test_gradient_in_sigma_against_finite_differences():
@@ -276,7 +276,9 @@ def test_gradient_in_psf_pixels_against_finite_differences():
 
     @jax.jit
     def f(p):
-        return jnp.sum(weight * convolve(img, image_otf(img.shape, p, centre="centroid"), pad=4))
+        return jnp.sum(
+            weight * convolve_psf(img, image_otf(img.shape, p, centre="centroid"), pad=4)
+        )
 
     g = jax.grad(f)(jnp.asarray(psf))
     e = np.zeros_like(psf)
@@ -298,20 +300,20 @@ def test_float32_path():
     otf32 = gaussian_otf(img.shape, s32)
     assert otf32.dtype == jnp.float32
     assert image_otf(img.shape, jnp.ones((3, 4), jnp.float32)).dtype == jnp.complex64
-    out32 = convolve(img32, otf32, pad=10)
+    out32 = convolve_psf(img32, otf32, pad=10)
     assert out32.dtype == jnp.float32
-    out64 = convolve(img, gaussian_otf(img.shape, 2.5), pad=10)
+    out64 = convolve_psf(img, gaussian_otf(img.shape, 2.5), pad=10)
     tol = EPS32 * math.log2(img.size) * np.abs(img).max()
     assert np.max(np.abs(np.asarray(out32, np.float64) - out64)) < tol
 
     def f(s, im):
-        return jnp.sum(convolve(im, gaussian_otf(im.shape, s), pad=10) * im[10:-10, 10:-10])
+        return jnp.sum(convolve_psf(im, gaussian_otf(im.shape, s), pad=10) * im[10:-10, 10:-10])
 
     g32 = jax.grad(f)(s32, img32)
     assert g32.dtype == jnp.float32
     np.testing.assert_allclose(float(g32), float(jax.grad(f)(2.5, img)), rtol=1e-5)
     # a float32 image with a float64 OTF stays float32
-    assert convolve(img32, gaussian_otf(img.shape, 2.5), pad=10).dtype == jnp.float32
+    assert convolve_psf(img32, gaussian_otf(img.shape, 2.5), pad=10).dtype == jnp.float32
 
 
 def test_jit_and_vmap():
@@ -322,7 +324,7 @@ def test_jit_and_vmap():
     sigmas = jnp.array([0.5, 1.5, 3.0])
 
     def blur(im, s):
-        return convolve(im, gaussian_otf(im.shape, s), pad=5)
+        return convolve_psf(im, gaussian_otf(im.shape, s), pad=5)
 
     eager = np.stack([np.asarray(blur(im, s)) for im, s in zip(imgs, sigmas)])
     np.testing.assert_allclose(jax.jit(blur)(imgs[1], sigmas[1]), eager[1], atol=100 * EPS64)
@@ -334,7 +336,7 @@ def test_jit_and_vmap():
     )
     # leading batch axes broadcast without vmap
     np.testing.assert_allclose(
-        convolve(imgs, gaussian_otf(imgs.shape[1:], 1.5), pad=5),
+        convolve_psf(imgs, gaussian_otf(imgs.shape[1:], 1.5), pad=5),
         np.stack([np.asarray(blur(im, 1.5)) for im in imgs]),
         atol=100 * EPS64,
     )
@@ -379,11 +381,11 @@ def test_argument_checks():
     with pytest.raises(ValueError, match="centre='peak'"):
         image_otf((8, 8), np.ones((3, 3)), centre="peak")
     with pytest.raises(ValueError, match=r"needs \(\.\.\., 20, 11\)"):
-        convolve(np.zeros((20, 20)), gaussian_otf((18, 18), 1.0), pad=1)
+        convolve_psf(np.zeros((20, 20)), gaussian_otf((18, 18), 1.0), pad=1)
     with pytest.raises(ValueError, match="pad=-1"):
-        convolve(np.zeros((20, 20)), gaussian_otf((20, 20), 1.0), pad=-1)
+        convolve_psf(np.zeros((20, 20)), gaussian_otf((20, 20), 1.0), pad=-1)
     with pytest.raises(ValueError, match="pad=10 leaves nothing"):
-        convolve(np.zeros((20, 20)), gaussian_otf((20, 20), 1.0), pad=10)
+        convolve_psf(np.zeros((20, 20)), gaussian_otf((20, 20), 1.0), pad=10)
     assert psf_margin(2.0) == 8 and psf_margin(0.3) == 2 and psf_margin(0.0) == 0
     assert psf_margin(np.ones((7, 7))) == 3 and psf_margin(np.ones((6, 9))) == 4
     with pytest.raises(ValueError, match="concrete"):

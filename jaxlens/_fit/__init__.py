@@ -19,12 +19,25 @@ relativistic rings' flux factor; standard errors come from the Gauss-Newton curv
 $J^T J$ and the residual variance.
 """
 
+from .arcs import (
+    ArcGuess as ArcGuess,
+    find_arcs as find_arcs,
+    offset_from_radii as offset_from_radii,
+    source_offset_from_arcs as source_offset_from_arcs,
+)
 from .fit_result import Fit as Fit
+from .fits import FitsImage as FitsImage, read_fits as read_fits
 from .general import DEFAULT_FREE as DEFAULT_FREE, fit as fit
 from .model import ring_image as ring_image
 from .noise import clipped_mean as clipped_mean
 from .params import PARAMETERS as PARAMETERS
 from .pixels import read_observation as read_observation
+from .psf import (
+    convolve_psf as convolve_psf,
+    gaussian_otf as gaussian_otf,
+    image_otf as image_otf,
+    psf_margin as psf_margin,
+)
 from .result import RingFit as RingFit
 from .ring import fit_ring as fit_ring
 from .table import einstein_ring_angle as einstein_ring_angle, escape_table as escape_table

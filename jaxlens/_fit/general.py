@@ -80,7 +80,7 @@ def _model(theta, scene, grid, otf, prob: _Problem):
     if prob.psf == "gaussian":
         otf = _psf.gaussian_otf(img.shape, p["psf_sigma"] / prob.block)
     if prob.psf is not None:
-        img = _psf.convolve(img, otf, pad=prob.pad)
+        img = _psf.convolve_psf(img, otf, pad=prob.pad)
     return img
 
 

@@ -9,7 +9,7 @@ Multiplying an image's `rfft2` by it and transforming back convolves the image w
 PSF without moving it.
 
 Why a margin. The FFT convolves circularly: light the PSF spreads past one edge of the
-array comes back in at the opposite edge. `convolve` therefore takes the model rendered
+array comes back in at the opposite edge. `convolve_psf` therefore takes the model rendered
 on a frame enlarged by `pad` pixels on every side, `(H + 2 pad, W + 2 pad)`, and returns
 the central `(H, W)` crop. A crop pixel is more than `pad` pixels from every pixel that
 wraps around, and every pixel of the scene within `pad` pixels of it was rendered, so
@@ -196,7 +196,7 @@ def image_otf(
     return otf
 
 
-def convolve(
+def convolve_psf(
     image: Float[ArrayLike, "*batch Hp Wp"],
     otf: ArrayLike,
     *,
@@ -262,7 +262,7 @@ def psf_margin(
     nsigma: float = 4.0,
     centre: Literal["middle", "centroid"] = "middle",
 ) -> int:
-    """The margin, in pixels, to render a model with before `convolve`: the PSF's
+    """The margin, in pixels, to render a model with before `convolve_psf`: the PSF's
     radius. Host-side (it fixes array shapes), so `psf` must be concrete.
 
     **Arguments:**
