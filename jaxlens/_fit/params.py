@@ -71,22 +71,22 @@ class Parameter:
     where: Callable | None = None
 
 
-def star_of(sky) -> GaussianStar:
-    """The first `GaussianStar` of a sky (the source a fit moves)."""
+def _part(sky, cls, hint: str):
     parts = sky.parts if isinstance(sky, SkySum) else (sky,)
     for p in parts:
-        if isinstance(p, GaussianStar):
+        if isinstance(p, cls):
             return p
-    raise ValueError("the scene's sky has no GaussianStar to fit (add jl.GaussianStar(...))")
+    raise ValueError(f"the scene's sky has no {cls.__name__} to fit (add {hint})")
+
+
+def star_of(sky) -> GaussianStar:
+    """The first `GaussianStar` of a sky (the source a fit moves)."""
+    return _part(sky, GaussianStar, "jl.GaussianStar(...)")
 
 
 def floor_of(sky) -> Uniform:
     """The first `Uniform` level of a sky (the floor a fit adjusts)."""
-    parts = sky.parts if isinstance(sky, SkySum) else (sky,)
-    for p in parts:
-        if isinstance(p, Uniform):
-            return p
-    raise ValueError("the scene's sky has no Uniform floor to fit (add jl.Uniform(0.0))")
+    return _part(sky, Uniform, "jl.Uniform(0.0)")
 
 
 PARAMETERS = {
