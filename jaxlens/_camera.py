@@ -262,24 +262,31 @@ class Camera(eqx.Module):
         x, y = self.sample_xy(row0, rows)
         return self._angles(x, y, oriented=not self.is_centred())
 
-    def _angles(self, x, y, *, oriented: bool):
+    def _view(self, x, y, *, oriented: bool):
+        """Camera-frame direction (not normalised, $z$ toward the hole) of image-plane
+        points `x, y` (pixels): `(dx, dy, dz)`; `oriented`: apply the view rotation."""
         f = self.focal
-        if oriented:
-            rot = self.rotation()
-            dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * f
-            dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * f
-            dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * f
-        else:
-            dx, dy, dz = x, y, jnp.broadcast_to(f, jnp.shape(x))
-        rho = jnp.hypot(dx, dy)
-        alpha = arctan2(rho, dz)
-        safe = rho > 0
-        rho_ = jnp.where(safe, rho, 1.0)
-        return alpha, jnp.where(safe, dx / rho_, 1.0), jnp.where(safe, dy / rho_, 0.0)
+        if not oriented:
+            return x, y, jnp.broadcast_to(f, jnp.shape(x))
+        rot = self.rotation()
+        return tuple(rot[i, 0] * x + rot[i, 1] * y + rot[i, 2] * f for i in range(3))
+
+    def _angles(self, x, y, *, oriented: bool):
+        return view_angles(*self._view(x, y, oriented=oriented))[:3]
 
     def to_world(self, n: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
         """Camera-frame directions to world (sky) directions."""
         return rotate(self.position_rotation(), n)
+
+
+def view_angles(dx, dy, dz):
+    """Local angle from the hole `alpha`, the orbital plane `(cos_beta, sin_beta)`
+    (`(1, 0)` on the axis) and `rho` $= \\sqrt{dx^2 + dy^2}$ of camera-frame directions."""
+    rho = jnp.hypot(dx, dy)
+    alpha = arctan2(rho, dz)
+    safe = rho > 0
+    rho_ = jnp.where(safe, rho, 1.0)
+    return alpha, jnp.where(safe, dx / rho_, 1.0), jnp.where(safe, dy / rho_, 0.0), rho
 
 
 def sky_direction(phi, cos_beta, sin_beta):

@@ -6,12 +6,16 @@ import math
 import sys
 
 
+def _number(name, text):
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{name} {text!r} is not a number") from None
+
+
 def _positive(name):
     def parse(text):
-        try:
-            value = float(text)
-        except ValueError:
-            raise ValueError(f"{name} {text!r} is not a number") from None
+        value = _number(name, text)
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"{name} {text!r} must be a finite number > 0")
         return value
@@ -145,12 +149,9 @@ def run(args):
 
 
 def _finite_number(what, text):
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"{what}: {text!r} is not a number") from None
+    value = _number(what, text)
     if not math.isfinite(value):
-        raise ValueError(f"{what}: {text!r} must be finite")
+        raise ValueError(f"{what} {text!r} must be finite")
     return value
 
 

@@ -39,9 +39,11 @@ import jax
 import jax.numpy as jnp
 
 from . import _area, _disk, _effects
+from ._camera import view_angles
 from ._exact import shadow_angle
 from ._fastmath import sin_cos
 from ._sky import AbstractCompactSky, SkySum
+from ._sky._base import rgb_shift_power
 from ._trace import trace
 from ._weak import weak_field_escape_angle
 
@@ -111,6 +113,14 @@ def _to_static(scene, alpha, cb, sb):
     return jnp.arctan2(rho, ns[..., 2]), cb_s, sb_s, _effects.doppler_factor(cos_a, v)
 
 
+def _frequency_ratio(scene, doppler, like):
+    """The camera's frequency ratio $g$ for light from infinity, `like`'s shape: the
+    static observer's blueshift times the Doppler factor of a moving camera (`doppler`,
+    `None` for a static one)."""
+    g = _effects.static_blueshift(scene.camera.distance).astype(like.dtype)
+    return jnp.broadcast_to(g if doppler is None else g * doppler, like.shape)
+
+
 def _escape_angle(scene, plan, ray_map, alpha):
     d = scene.camera.distance
     if plan.geometry == "table":
@@ -134,17 +144,14 @@ def _geometry(scene, plan, ray_map, x, y):
     # One sample's size in alpha: cos^2(angle off the image axis) / (f k); for an
     # off-centre view the same to first order.
     width = f / ((x * x + y * y + f * f) * cam.supersample)
-    g = None
+    g = doppler = None
     if plan.aberration is not None:
         with jax.named_scope("jaxlens.aberration"):
             alpha, cb, sb, doppler = _to_static(scene, alpha, cb, sb)
             width = width * doppler
     if plan.redshift is not None:
         with jax.named_scope("jaxlens.redshift"):
-            g = _effects.static_blueshift(cam.distance).astype(dt)
-            if plan.aberration is not None:
-                g = g * doppler
-            g = jnp.broadcast_to(g, alpha.shape)
+            g = _frequency_ratio(scene, doppler, alpha)
     with jax.named_scope(f"jaxlens.{plan.geometry}"):
         if ray_map is not None:
             alpha_sh = ray_map.alpha_sh.astype(dt)
@@ -217,13 +224,18 @@ def directions(scene, plan, ray_map, row0, rows: int):
     return n, cover
 
 
+def _sky_radiance(sky, plan, n, g):
+    """A sky's radiance at world directions `n`, frequency-shifted if the plan says."""
+    if plan.redshift is None:
+        return sky(n)
+    with jax.named_scope("jaxlens.redshift"):
+        return sky.shifted(n, g, plan.redshift)
+
+
 def _radiance(scene, plan, n, g):
     if not plan.at_origin:
         n = scene.camera.to_world(n)
-    if plan.redshift is None:
-        return scene.sky(n)
-    with jax.named_scope("jaxlens.redshift"):
-        return scene.sky.shifted(n, g, plan.redshift)
+    return _sky_radiance(scene.sky, plan, n, g)
 
 
 def _average(radiance, rows: int, width: int, k: int):
@@ -297,19 +309,12 @@ def _static_rays(scene, plan, x, y):
     pixel) with the unit normal of the iso-alpha lines `(nx, ny)`."""
     cam = scene.camera
     f = cam.focal
-    if plan.centred:
-        dx, dy, dz = x, y, jnp.broadcast_to(f, jnp.shape(x))
-        r = ((1, 0, 0), (0, 1, 0), (0, 0, 0))
-    else:
-        rot = cam.rotation()
-        dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * f
-        dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * f
-        dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * f
-        r = rot
-    alpha, cb, sb = cam._angles(x, y, oriented=not plan.centred)
-    rho = jnp.hypot(dx, dy)
+    dx, dy, dz = cam._view(x, y, oriented=not plan.centred)
+    # d(dx, dy, dz) / d(x, y): the view rotation's first two columns (dz = f unrotated).
+    r = ((1, 0), (0, 1), (0, 0)) if plan.centred else cam.rotation()
+    alpha, cb, sb, rho = view_angles(dx, dy, dz)
     # d alpha / d(x, y) of alpha = atan2(rho, dz): finite at the axis through the
-    # guarded (cb, sb) that `_angles` returns there.
+    # guarded (cb, sb) that `view_angles` returns there.
     den = rho * rho + dz * dz
     gx = (dz * (cb * r[0][0] + sb * r[1][0]) - rho * r[2][0]) / den
     gy = (dz * (cb * r[0][1] + sb * r[1][1]) - rho * r[2][1]) / den
@@ -345,13 +350,6 @@ def ring_references(ray_map, dtype):
     a, slope = jax.lax.map(lambda t: ray_map.solve(t, with_slope=True), targets)
     gap = a - ray_map.alpha_sh.astype(dtype)
     return jnp.log(gap), slope * gap
-
-
-def _sky_radiance(sky, plan, n, g):
-    if plan.redshift is None:
-        return sky(n)
-    with jax.named_scope("jaxlens.redshift"):
-        return sky.shifted(n, g, plan.redshift)
 
 
 def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, references=None, rings=True):
@@ -420,10 +418,7 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
     xn, yn = grid(node)
     a_n, cb_n, sb_n, dop_n = _static_rays(scene, plan, xn, yn)[:4]
     a_edge = alpha_sh + 0.5 * _area.half_extent(ax, ay) * grad
-    g = None
-    if plan.redshift is not None:
-        g = _effects.static_blueshift(cam.distance).astype(dt)
-        g = jnp.broadcast_to(g if dop_n is None else g * dop_n, a_n.shape)
+    g = None if plan.redshift is None else _frequency_ratio(scene, dop_n, a_n)
     with jax.named_scope(f"jaxlens.{plan.geometry}"):
         phi = _escape_angle(scene, plan, ray_map, jnp.maximum(a_n, a_edge))
     sp, cp = sin_cos(phi)
@@ -459,10 +454,8 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
             if not plan.at_origin:
                 e1, e3 = cam.to_world(e1), cam.to_world(e3)
             scale = 1.0
-            if plan.redshift is not None:
-                gp = _effects.static_blueshift(cam.distance).astype(dt)
-                gp = gp if dop_p is None else gp * dop_p
-                scale = gp ** (4 if plan.redshift == "bolometric" else 3)
+            if plan.redshift is not None:  # compact skies are RGB: g^4 or g^3
+                scale = _frequency_ratio(scene, dop_p, xp) ** rgb_shift_power(plan.redshift)
             exact = plan.centred and plan.aberration is None
             rho_c = f * jnp.tan(a_c) if exact else None
             for c in compact:

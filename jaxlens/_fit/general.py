@@ -18,7 +18,9 @@ from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
 from .params import PARAMETERS, apply, values_of
+from .pixels import _bin_valid
 from .result import _result_name
+from .solve import dense_least_squares
 from .table import escape_table
 
 DEFAULT_FREE = (
@@ -43,7 +45,6 @@ class _Problem(eqx.Module):
     block: int = eqx.field(static=True)
     k: int = eqx.field(static=True)
     pad: int = eqx.field(static=True)
-    shape: tuple = eqx.field(static=True)  # (rows, cols) of the compared grid
     noise: str = eqx.field(static=True)
     psf: str | None = eqx.field(static=True)  # None, "gaussian" or "image"
     knots: int = eqx.field(static=True)
@@ -120,33 +121,10 @@ def _residuals_model(theta, args, prob: _Problem):
 
 @eqx.filter_jit
 def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
-    def both(theta):
-        r, m = _residuals_model(theta, args, prob)
-        return r, (r, m)
-
-    @jax.custom_jvp
-    def fn(theta):  # residuals with a dense Jacobian (one forward-mode pass), the model
-        jac, (r, m) = jax.jacfwd(both, has_aux=True)(theta)
-        return r, jac, m
-
-    @fn.defjvp
-    def _jvp(primals, tangents):
-        (theta,), (dtheta,) = primals, tangents
-        r, jac, m = fn(theta)
-        return (r, jac, m), (jac @ dtheta, jnp.zeros_like(jac), jnp.zeros_like(m))
-
-    sol = optx.least_squares(
-        lambda th, _: (lambda r, jac, m: (r, (r, jac, m)))(*fn(th)),
-        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
-        theta0,
-        has_aux=True,
-        max_steps=max_steps,
-        throw=False,
+    """`dense_least_squares` on the residuals, the model as its auxiliary output."""
+    return dense_least_squares(
+        lambda th: _residuals_model(th, args, prob), theta0, rtol, atol, max_steps
     )
-    # The auxiliary output of the last accepted point but one: at termination that step
-    # is below the tolerances, so (r, J, model) are the optimum's to that accuracy.
-    r, jac, m = sol.aux
-    return sol.value, r, jac, m, sol.result, sol.stats["num_steps"]
 
 
 _loss = eqx.filter_jit(lambda theta, args, prob: jnp.sum(_residuals(theta, args, prob) ** 2))
@@ -190,18 +168,6 @@ def _read_mask(mask, shape):
     return mask
 
 
-def _bins(img, valid, block):
-    """Bin means over the valid pixels, and the count of valid pixels in each bin."""
-    h, w = img.shape
-    hb, wb = h // block, w // block
-    r0, c0 = (h - hb * block) // 2, (w - wb * block) // 2
-    crop = np.where(valid, img, 0.0)[r0 : r0 + hb * block, c0 : c0 + wb * block]
-    cnt = valid[r0 : r0 + hb * block, c0 : c0 + wb * block]
-    s = crop.reshape(hb, block, wb, block).sum(axis=(1, 3))
-    n = cnt.reshape(hb, block, wb, block).sum(axis=(1, 3))
-    return np.where(n > 0, s / np.maximum(n, 1), 0.0), n
-
-
 def _gain_estimate(img, valid):
     """Counts per data unit from the mean-variance relation of Poisson noise
     (variance = mean / gain), over 8 x 8 tiles (robust variance from second
@@ -222,9 +188,9 @@ def _gain_estimate(img, valid):
     return float(np.median(ratios))
 
 
-def _source_start(img, valid, floor, focal, ring_px):
-    """Azimuth (radians, image plane, 0 = +x toward +y) of the brighter arc and the
-    ring's asymmetry |first moment| / total in an annulus about the ring radius."""
+def _source_start(img, valid, floor, ring_px):
+    """Azimuth (radians, image plane, 0 = +x toward +y) of the brighter arc: the first
+    moment of the light above the floor in an annulus about the ring radius."""
     h, w = img.shape
     yy, xx = np.mgrid[0:h, 0:w]
     x, y = xx + 0.5 - 0.5 * w, 0.5 * h - (yy + 0.5)
@@ -233,9 +199,9 @@ def _source_start(img, valid, floor, focal, ring_px):
     wgt = np.clip(img - floor, 0.0, None) * band
     total = wgt.sum()
     if total <= 0:
-        return 0.0, 0.0
+        return 0.0
     c, s = (wgt * x / np.maximum(rho, 1e-9)).sum(), (wgt * y / np.maximum(rho, 1e-9)).sum()
-    return math.atan2(s, c), math.hypot(c, s) / total
+    return math.atan2(s, c)
 
 
 def fit(
@@ -376,7 +342,7 @@ def fit(
         model_scene = apply(model_scene, {n: v for n, v in held.items()
                                           if PARAMETERS[n].where or "source" in n})  # fmt: skip
         # --- the compared grid: bins of `block`, a margin for the PSF.
-        data, count = _bins(gray, valid, block)
+        data, count = _bin_valid(gray, valid, block)
         if psf_kind == "gaussian":
             pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // block)
         elif psf_kind == "image":
@@ -392,7 +358,7 @@ def fit(
             otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
         extras = ("ring_flux", "psf_sigma") if psf_kind == "gaussian" else ("ring_flux",)
         fixed = tuple((n, float(start[n])) for n in extras if n not in free)
-        prob = _Problem(free, fixed, block, k, pad, data.shape, kind, psf_kind, int(knots))
+        prob = _Problem(free, fixed, block, k, pad, kind, psf_kind, int(knots))
         weight = np.sqrt(count).astype(np.float64)
         # Clipping acts on each original pixel, with its own noise.
         clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
@@ -413,8 +379,7 @@ def fit(
                 psi = arcs.psi
                 beta = float(source_offset_from_arcs(arcs, start["distance"], f_px))
             else:
-                psi = _source_start(gray, valid, start.get("floor", 0.0), f_px,
-                                    prof.ring_radius)[0]  # fmt: skip
+                psi = _source_start(gray, valid, start.get("floor", 0.0), prof.ring_radius)
                 beta = math.nan
             offsets = [0.0] + list(np.geomspace(0.05, 6.0, 8) * math.pi / 180.0)
             if math.isfinite(beta) and beta > 0:
@@ -485,7 +450,6 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
     err = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(err, err)
-    import optimistix as optx
 
     ok = bool(result == optx.RESULTS.successful)
     notes, degenerate = [], False

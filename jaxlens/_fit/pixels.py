@@ -49,11 +49,21 @@ def _as_gray(image) -> np.ndarray:
 
 
 def _bin(img, block):
+    """Means of the `block` x `block` bins of an image (centred crop)."""
+    return _bin_valid(img, np.ones(img.shape, bool), block)[0]
+
+
+def _bin_valid(img, valid, block):
+    """Means over the `valid` pixels of the `block` x `block` bins of an image (centred
+    crop when the size does not divide; 0 where a bin has none), and their counts."""
     h, w = img.shape
     hb, wb = h // block, w // block
     r0, c0 = (h - hb * block) // 2, (w - wb * block) // 2
-    crop = img[r0 : r0 + hb * block, c0 : c0 + wb * block]
-    return crop.reshape(hb, block, wb, block).mean(axis=(1, 3))
+    crop = np.where(valid, img, 0.0)[r0 : r0 + hb * block, c0 : c0 + wb * block]
+    cnt = valid[r0 : r0 + hb * block, c0 : c0 + wb * block]
+    s = crop.reshape(hb, block, wb, block).sum(axis=(1, 3))
+    n = cnt.reshape(hb, block, wb, block).sum(axis=(1, 3))
+    return np.where(n > 0, s / np.maximum(n, 1), 0.0), n
 
 
 class _PixelSets(eqx.Module):

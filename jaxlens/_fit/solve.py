@@ -92,47 +92,50 @@ def _residuals(theta, args, setup: _Setup):
     return jnp.concatenate([weight * (m - data / scale), prior])
 
 
-def _dense_residuals(args, setup: _Setup):
-    """The residual function with a dense Jacobian: `fn(theta) -> (r, J)`, whose JVP is
-    `J @ dtheta` with `J` from one forward-mode pass over the 4-5 parameters.
+def dense_least_squares(both, theta0, rtol, atol, max_steps):
+    """Levenberg-Marquardt (optimistix) on `both(theta) -> (r, aux)`, with a dense
+    Jacobian.
 
-    Optimistix applies the linearised residuals several times a step (the damped QR,
-    the trust region's predicted reduction) and each application would otherwise be a
-    further copy of the model's tangent program; with the Jacobian materialised once
-    they are matrix products, and the solver's program compiles ~3x faster. `J` also
-    comes back as the auxiliary output, for the covariance at the solution."""
+    The Jacobian `J` comes from one forward-mode pass over the few parameters, and the
+    residual function's JVP is `J @ dtheta`: optimistix applies the linearised
+    residuals several times a step (the damped QR, the trust region's predicted
+    reduction) and each application would otherwise be a further copy of the model's
+    tangent program; as matrix products the solver's program compiles ~3x faster.
 
-    def both(theta):
-        r = _residuals(theta, args, setup)
-        return r, r
+    **Returns:** `(theta, r, J, aux, result, steps)`; `r`, `J`, `aux` are those of the
+    last accepted point but one: at termination that step is below the tolerances, so
+    they are the optimum's to that accuracy, and no further copy of the model's
+    Jacobian is compiled.
+    """
 
     @jax.custom_jvp
     def fn(theta):
-        jac, r = jax.jacfwd(both, has_aux=True)(theta)
-        return r, jac
+        jac, (r, aux) = jax.jacfwd(lambda t: (lambda r, a: (r, (r, a)))(*both(t)),
+                                   has_aux=True)(theta)  # fmt: skip
+        return r, jac, aux
 
     @fn.defjvp
     def _jvp(primals, tangents):
         (theta,), (dtheta,) = primals, tangents
-        r, jac = fn(theta)
-        return (r, jac), (jac @ dtheta, jnp.zeros_like(jac))
+        r, jac, aux = fn(theta)
+        zero = jax.tree.map(jnp.zeros_like, aux)
+        return (r, jac, aux), (jac @ dtheta, jnp.zeros_like(jac), zero)
 
-    return fn
-
-
-@eqx.filter_jit
-def _solve(theta0, args, setup: _Setup, rtol, atol, max_steps):
-    fn = _dense_residuals(args, setup)
     sol = optx.least_squares(
-        lambda th, _: (lambda r, jac: (r, (r, jac)))(*fn(th)),
+        lambda th, _: (lambda r, jac, aux: (r, (r, jac, aux)))(*fn(th)),
         optx.LevenbergMarquardt(rtol=rtol, atol=atol),
         theta0,
         has_aux=True,
         max_steps=max_steps,
         throw=False,
     )
-    # The solver returns the auxiliary output of the last accepted point but one: at
-    # termination that step is below the tolerances, so (r, J) are those of the optimum
-    # to that accuracy, and no further copy of the model's Jacobian is compiled.
-    r, jac = sol.aux
-    return sol.value, r, jac, sol.result, sol.stats["num_steps"]
+    r, jac, aux = sol.aux
+    return sol.value, r, jac, aux, sol.result, sol.stats["num_steps"]
+
+
+@eqx.filter_jit
+def _solve(theta0, args, setup: _Setup, rtol, atol, max_steps):
+    theta, r, jac, _, result, steps = dense_least_squares(
+        lambda th: (_residuals(th, args, setup), None), theta0, rtol, atol, max_steps
+    )
+    return theta, r, jac, result, steps

@@ -64,8 +64,13 @@ class AbstractRGBSky(AbstractSky):
     """
 
     def shifted(self, n, g, mode):
-        power = 4 if mode == "bolometric" else 3
-        return (jnp.asarray(g, n.dtype) ** power)[..., None] * self(n)
+        return (jnp.asarray(g, n.dtype) ** rgb_shift_power(mode))[..., None] * self(n)
+
+
+def rgb_shift_power(mode: str) -> int:
+    """The power of $g$ that scales a sky without a spectrum: 4 (`"bolometric"`) or 3
+    (`"spectral"`, a flat spectrum)."""
+    return 4 if mode == "bolometric" else 3
 
 
 class AbstractCompactSky(AbstractRGBSky):
