@@ -369,7 +369,8 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
     **Arguments:** `scene` (one camera; `scene.camera.sampling` is not consulted),
     `plan` (its `Plan`; the `"table"` geometry for compact sources), `ray_map` (the
     `RayMap` of the distance in the camera's dtype), `x0`, `y0` (one shape), `side`
-    (scalar, pixels), `k` (the rule's order; default the camera's `supersample`);
+    (pixels: a scalar, or one a cell broadcasting to `x0`'s shape), `k` (the rule's
+    order; default the camera's `supersample`);
     `references`: `ring_references(ray_map, dtype)` when the caller evaluates many
     batches of cells of one scene (computed here otherwise); `rings=False` leaves the
     thin rings out (`thin` is then 0: a coarse search that compares the primary
@@ -384,15 +385,16 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
     dt = cam.dtype
     x0, y0 = jnp.asarray(x0, dt), jnp.asarray(y0, dt)
     node, weight, centre = (jnp.asarray(v, dt) for v in _area.rule(k))
-    side = jnp.asarray(side, dt)
+    side = jnp.broadcast_to(jnp.asarray(side, dt), x0.shape)
+    s4 = side[..., None, None]
     full = jnp.zeros(x0.shape + (k, k), dt)
 
     def grid(u):  # [..., i (x), j (y)]
-        x = x0[..., None, None] + side * u[:, None] + full
-        y = y0[..., None, None] - side * u[None, :] + full
+        x = x0[..., None, None] + s4 * u[:, None] + full
+        y = y0[..., None, None] - s4 * u[None, :] + full
         return x, y
 
-    ext_x, ext_y = side * weight[:, None], side * weight[None, :]
+    ext_x, ext_y = s4 * weight[:, None], s4 * weight[None, :]
     w2 = weight[:, None] * weight[None, :]
     if ray_map is not None:
         alpha_sh = ray_map.alpha_sh.astype(dt)
