@@ -29,10 +29,14 @@ class Fit:
     - `model`, `residuals`: the model image and data - model on the compared pixel grid
       (`block` x `block` bins of the image; NaN where masked).
     - `n_pixels`, `block`, `supersample`: pixels compared, their binning, k.
-    - `result_name`, `num_steps`: the optimistix result and its steps.
+    - `result`: the optimistix `RESULTS` of the solve, `result_name` its name,
+      `num_steps` its steps.
     - `converged`: the solve succeeded, the curvature is finite and invertible, no
       parameter sits at a bound; `degenerate`: some parameters cannot be separated by
       the image (named in `message`); `message`: "" when all is well.
+    - `variance_inflation`: the largest $1/(1 - R^2)$ over D, FOV (and sigma), $R$
+      the multiple correlation of one with the other free parameters (NaN when D or
+      FOV is held); above 1e9 the curvature is singular.
     - `seconds`: wall time, compile included.
     """
 
@@ -52,8 +56,10 @@ class Fit:
     n_pixels: int
     block: int
     supersample: int
+    result: object
     result_name: str
     num_steps: int
+    variance_inflation: float
     converged: bool
     degenerate: bool
     message: str

@@ -67,40 +67,83 @@ def _bin_valid(img, valid, block):
 
 
 class _PixelSets(eqx.Module):
-    """The pixels a fit compares (host-side numpy): `fine` edges (x0, y0) of pixels of
+    """The pixels a fit compares (host-side numpy): `fine` edges (x0, y0) of bins of
     side `block`, `coarse_edges` of blocks of side `coarse` (empty when `coarse` = 0),
-    their stored values `data` (fine, then coarse) and weights (the side of each)."""
+    the means of their valid pixels `data` (fine, then coarse), the counts of those
+    `count`, and where each lies: `rows`, `cols` (top-left, original pixels) and `side`."""
 
     fine: tuple
     coarse_edges: tuple
     data: np.ndarray
-    weight: np.ndarray
+    count: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    side: np.ndarray
     block: int
     coarse: int
+    shape: tuple  # of the original image
+
+    @property
+    def weight(self) -> np.ndarray:
+        """sqrt(count): a weighted residual has the noise of one original pixel."""
+        return np.sqrt(self.count)
+
+    def paint(self, values, fill=np.nan) -> np.ndarray:
+        """`values` (one per compared bin) as an image of `block` x `block` bins, each
+        coarse block filling its bins; `fill` where no bin lies or none is valid."""
+        h, w = self.shape
+        hb, wb = h // self.block, w // self.block
+        r0, c0 = (h - hb * self.block) // 2, (w - wb * self.block) // 2
+        out = np.full((hb, wb), fill, dtype=np.result_type(values, float))
+        values = np.where(self.count > 0, values, fill)
+        for side in np.unique(self.side):
+            sel = self.side == side
+            q = int(side) // self.block
+            rr = (self.rows[sel] - r0) // self.block
+            cc = (self.cols[sel] - c0) // self.block
+            for i in range(q):
+                for j in range(q):
+                    out[np.minimum(rr + i, hb - 1), np.minimum(cc + j, wb - 1)] = values[sel]
+        return out
 
 
-def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None) -> _PixelSets:
+def _grid_sets(img, valid, block) -> _PixelSets:
+    """Every `block` x `block` bin (centred crop), as one set."""
+    h, w = img.shape
+    data, count = _bin_valid(img, valid, block)
+    x0, y0 = (np.asarray(v).ravel() for v in _pixel_edges(w, h, block, np.float64))
+    cols = np.round(x0 + 0.5 * w).astype(int)
+    rows = np.round(0.5 * h - y0).astype(int)
+    empty = (np.zeros(0), np.zeros(0))
+    return _PixelSets((x0, y0), empty, data.ravel(), count.ravel().astype(float), rows, cols,
+                      np.full(x0.size, block), block, 0, (h, w))  # fmt: skip
+
+
+def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=None,
+                centre=(0.0, 0.0), structure=None) -> _PixelSets:  # fmt: skip
     """Full resolution (or bins of `block`, the finest the ring allows) on the shadow
-    edge and the ring; where the image is flat (inside the shadow, the far sky) blocks
-    q times larger, q the smallest factor that brings the count to `max_pixels`.
+    edge, the ring and wherever the image shows light; where the image is flat (inside
+    the shadow, the far sky) blocks q times larger, q the smallest factor that brings
+    the count to `max_pixels`.
 
     Fine bins: side `block` (default 1, or up to half the ring's radial width when the
-    image is still too large). The bands at full resolution: the ring radius +- 6 ring
-    widths and the shadow edge (from the starting distance and, when seen, the profile)
-    +- 3 pixels, each widened by a coarse block's diagonal.
+    image is still too large). The bands at full resolution, about `centre` (the hole's
+    image, pixels from the image centre, y up): the ring radius +- 6 ring widths and the
+    shadow edge (from the starting distance and, when seen, the profile) +- 3 pixels,
+    each widened by a coarse block's diagonal; and every block whose mean stands above
+    `structure` (data units; None: no such test). `valid` (bool, default all): the
+    pixels compared.
     """
     h, w = img.shape
+    valid = np.ones(img.shape, bool) if valid is None else np.asarray(valid, bool)
     if block is None:
         block = 1
         while (h // block) * (w // block) > 4 * max_pixels and 2 * (block + 1) <= prof.ring_width:
             block += 1
     block = int(block)
-    fine_all = _bin(img, block)
-    hf, wf = fine_all.shape
+    hf, wf = h // block, w // block
     if hf * wf <= max_pixels:
-        x0, y0 = (np.asarray(v).ravel() for v in _pixel_edges(w, h, block, np.float64))
-        empty = (np.zeros(0), np.zeros(0))
-        return _PixelSets((x0, y0), empty, fine_all.ravel(), np.full(x0.size, block), block, 0)
+        return _grid_sets(img, valid, block)
     ring_lo = prof.ring_radius - 6.0 * prof.ring_width - 3.0
     ring_hi = prof.ring_radius + 6.0 * prof.ring_width + 3.0
     edges = [r for r in (rho_sh, prof.shadow_radius) if math.isfinite(r)]
@@ -110,27 +153,38 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None) -> _Pixel
         if hb < 2 or wb < 2:
             break
         bx, by = (np.asarray(v) for v in _pixel_edges(w, h, big, np.float64))
-        rc = np.hypot(bx + 0.5 * big, by - 0.5 * big)
+        rc = np.hypot(bx + 0.5 * big - centre[0], by - 0.5 * big - centre[1])
         half = big / math.sqrt(2.0)
         lo_r, hi_r = rc - half, rc + half
         sel = (hi_r > ring_lo) & (lo_r < ring_hi)
         for e in edges:
             sel |= (hi_r > e - 3.0) & (lo_r < e + 3.0)
+        crop_r0, crop_c0 = (h - hb * big) // 2, (w - wb * big) // 2
+        crop = (slice(crop_r0, crop_r0 + hb * big), slice(crop_c0, crop_c0 + wb * big))
+        if structure is not None:
+            mean, _ = _bin_valid(img[crop], valid[crop], big)
+            sel |= mean > structure
         n = int(sel.sum()) * q * q + int((~sel).sum())
         if n <= max_pixels or q * block >= min(h, w) // 4:
             break
-    # The fine pixels of the selected blocks, and the coarse blocks elsewhere.
-    crop_r0, crop_c0 = (h - hb * big) // 2, (w - wb * big) // 2
+    # The fine bins of the selected blocks, and the coarse blocks elsewhere.
     sub = np.arange(q) * block
     fx = (bx[sel][:, None, None] + sub[None, None, :]).repeat(q, axis=1).ravel()
     fy = (by[sel][:, None, None] - sub[None, :, None]).repeat(q, axis=2).ravel()
     cols = np.round(fx + 0.5 * w).astype(int)
     rows = np.round(0.5 * h - fy).astype(int)
-    fine = img[
-        rows[:, None, None] + np.arange(block)[None, :, None],
-        cols[:, None, None] + np.arange(block)[None, None, :],
-    ].mean(axis=(1, 2))
-    coarse = _bin(img[crop_r0 : crop_r0 + hb * big, crop_c0 : crop_c0 + wb * big], big)
-    data = np.concatenate([fine, coarse[~sel]])
-    weight = np.concatenate([np.full(fine.size, block), np.full(int((~sel).sum()), big)])
-    return _PixelSets((fx, fy), (bx[~sel], by[~sel]), data, weight.astype(float), block, big)
+    win = (rows[:, None, None] + np.arange(block)[None, :, None],
+           cols[:, None, None] + np.arange(block)[None, None, :])  # fmt: skip
+    f_cnt = valid[win].sum(axis=(1, 2))
+    f_sum = np.where(valid[win], img[win], 0.0).sum(axis=(1, 2))
+    fine = np.where(f_cnt > 0, f_sum / np.maximum(f_cnt, 1), 0.0)
+    coarse, c_cnt = _bin_valid(img[crop], valid[crop], big)
+    c_cols = np.round(bx[~sel] + 0.5 * w).astype(int)
+    c_rows = np.round(0.5 * h - by[~sel]).astype(int)
+    return _PixelSets(
+        (fx, fy), (bx[~sel], by[~sel]), np.concatenate([fine, coarse[~sel]]),
+        np.concatenate([f_cnt, c_cnt[~sel]]).astype(float), np.concatenate([rows, c_rows]),
+        np.concatenate([cols, c_cols]),
+        np.concatenate([np.full(fine.size, block), np.full(c_cols.size, big)]), block, big,
+        (h, w),
+    )  # fmt: skip

@@ -184,44 +184,56 @@ def _result_name(result) -> str:
     return "failed"
 
 
-def _diagnose(d, fov, floor, ring_flux, err, corr, cond, converged, fit_sigma, prof, result):
-    notes = []
-    degenerate = False
-    edge_seen = np.isfinite(prof.shadow_radius) or floor > _EDGE_SIGNIFICANCE * err[-2]
-    ring_seen = ring_flux > _RING_SIGNIFICANCE * err[-1]
-    rel_d = err[0] / d if d > 0 else np.inf
-    rel_f = err[1] / fov if fov > 0 else np.inf
+def _ring_verdict(names, values, errors, corr, shadow_seen: bool):
+    """Whether a fit of D and FOV (`names` holding both) is degenerate, as a ring fixes
+    them: D and FOV loose (relative errors above 10 %) or their curvature singular
+    (variance inflation of D, FOV and sigma above 1e9); or, with sigma free, neither
+    the shadow's edge (`shadow_seen`, or a floor seen above its errors) nor the
+    relativistic ring (its flux above 10 errors) separating D from FOV and sigma.
+
+    **Returns:** `(degenerate, note, vif)`: the note ("" when not degenerate) and the
+    largest variance inflation.
+    """
+    fit_sigma = "sigma" in names
+    idx = [names.index(n) for n in ("distance", "fov", "sigma") if n in names]
+    d, fov = values["distance"], values["fov"]
+    rel_d = errors["distance"] / d if d > 0 else np.inf
+    rel_f = errors["fov"] / fov if fov > 0 else np.inf
     try:
-        vif = float(np.max(np.diag(np.linalg.inv(corr[: 2 + fit_sigma, : 2 + fit_sigma]))))
+        vif = float(np.max(np.diag(np.linalg.inv(corr[np.ix_(idx, idx)]))))
     except np.linalg.LinAlgError:
         vif = np.inf
     if not np.isfinite(vif):
         vif = np.inf
     if not (rel_d < _REL_ERR_DEGENERATE and rel_f < _REL_ERR_DEGENERATE) or vif > _VIF_DEGENERATE:
-        degenerate = True
         why = (
             f"D and FOV are not fixed separately by this image (relative errors "
             f"{rel_d:.2g} and {rel_f:.2g}, variance inflation {vif:.3g})"
         )
-        if fit_sigma and not np.isfinite(prof.shadow_radius):
+        if fit_sigma and not shadow_seen:
             why += (
                 "; sigma is unknown and no shadow edge is visible against a floor, so "
                 "the ring's radius and width trade D against FOV and sigma: pass "
-                "star_sigma, or use an image with a visible shadow edge"
+                "star_sigma (fix sigma), or use an image with a visible shadow edge"
             )
-        notes.append(why)
-    elif fit_sigma and not edge_seen and not ring_seen:
-        degenerate = True
-        notes.append(
-            f"sigma is unknown, no shadow edge is visible against a floor, and the "
-            f"relativistic ring is seen at {ring_flux / err[-1]:.2g} standard errors "
-            f"(below {_RING_SIGNIFICANCE:g}): only it separates D from FOV and sigma, so "
-            f"D = {d:.4g} +- {err[0]:.2g} rests on a faint, sub-pixel feature: pass "
-            "star_sigma, or use an image with a visible shadow edge or less noise"
+        return True, why, vif
+    edge_seen = shadow_seen or (
+        "floor" in names and values["floor"] > _EDGE_SIGNIFICANCE * errors["floor"]
+    )
+    ring_seen = "ring_flux" not in names or (
+        values["ring_flux"] > _RING_SIGNIFICANCE * errors["ring_flux"]
+    )
+    if fit_sigma and not edge_seen and not ring_seen:
+        return (
+            True,
+            (
+                f"sigma is unknown, no shadow edge is visible against a floor, and the "
+                f"relativistic ring is seen at {values['ring_flux'] / errors['ring_flux']:.2g} "
+                f"standard errors (below {_RING_SIGNIFICANCE:g}): only it separates D from FOV "
+                f"and sigma, so D = {d:.4g} +- {errors['distance']:.2g} rests on a faint, "
+                "sub-pixel feature: pass star_sigma (fix sigma), or use an image with a "
+                "visible shadow edge or less noise"
+            ),
+            vif,
         )
-    if not converged:
-        notes.append(
-            f"the solver did not converge ({_result_name(result)}, curvature condition "
-            f"number {cond:.3g})"
-        )
-    return degenerate or not converged, "; ".join(notes), vif
+    return False, "", vif
