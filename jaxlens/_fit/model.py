@@ -3,6 +3,7 @@ the hole over a floor (the basis images of the fit) and `ring_image`."""
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _kernel, _plan
@@ -72,12 +73,13 @@ def _pixel_basis(
 
 def _pixel_edges(width: int, height: int, block: int, dtype):
     """Left/top edges (full-image pixels from the centre) of the `block` x `block`
-    bins of a `width` x `height` image, centred crop when the size does not divide."""
+    bins of a `width` x `height` image, centred crop when the size does not divide
+    (numpy: host-side constants, no dispatch for each bin size)."""
     wb, hb = width // block, height // block
     c0, r0 = (width - wb * block) // 2, (height - hb * block) // 2
-    x0 = c0 + block * jnp.arange(wb, dtype=dtype) - 0.5 * width
-    y0 = 0.5 * height - (r0 + block * jnp.arange(hb, dtype=dtype))
-    return jnp.broadcast_to(x0[None, :], (hb, wb)), jnp.broadcast_to(y0[:, None], (hb, wb))
+    x0 = (c0 + block * np.arange(wb) - 0.5 * width).astype(dtype)
+    y0 = (0.5 * height - (r0 + block * np.arange(hb))).astype(dtype)
+    return np.broadcast_to(x0[None, :], (hb, wb)), np.broadcast_to(y0[:, None], (hb, wb))
 
 
 def ring_image(

@@ -123,11 +123,12 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
                 centre=(0.0, 0.0), structure=None) -> _PixelSets:  # fmt: skip
     """Full resolution (or bins of `block`, the finest the ring allows) on the shadow
     edge, the ring and wherever the image shows light; where the image is flat (inside
-    the shadow, the far sky) blocks q times larger, q the smallest factor that brings
-    the count to `max_pixels`.
+    the shadow, the far sky) blocks q times larger, q the factor that gives the fewest
+    bins in all (at most `max_pixels`, where the bands allow).
 
     Fine bins: side `block` (default 1, or up to half the ring's radial width when the
-    image is still too large). The bands at full resolution, about `centre` (the hole's
+    image is still too large, and up to that width when the bands alone hold more than
+    `max_pixels`). The bands at full resolution, about `centre` (the hole's
     image, pixels from the image centre, y up): the ring radius +- 6 ring widths and the
     shadow edge (from the starting distance and, when seen, the profile) +- 3 pixels,
     each widened by a coarse block's diagonal; and every block whose mean stands above
@@ -136,37 +137,51 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
     """
     h, w = img.shape
     valid = np.ones(img.shape, bool) if valid is None else np.asarray(valid, bool)
-    if block is None:
+    given = block is not None
+    if not given:
         block = 1
         while (h // block) * (w // block) > 4 * max_pixels and 2 * (block + 1) <= prof.ring_width:
             block += 1
     block = int(block)
-    hf, wf = h // block, w // block
-    if hf * wf <= max_pixels:
+    if (h // block) * (w // block) <= max_pixels:
         return _grid_sets(img, valid, block)
     ring_lo = prof.ring_radius - 6.0 * prof.ring_width - 3.0
     ring_hi = prof.ring_radius + 6.0 * prof.ring_width + 3.0
     edges = [r for r in (rho_sh, prof.shadow_radius) if math.isfinite(r)]
-    for q in range(2, max(hf, wf) + 1):
-        big = block * q
-        hb, wb = h // big, w // big
-        if hb < 2 or wb < 2:
-            break
-        bx, by = (np.asarray(v) for v in _pixel_edges(w, h, big, np.float64))
-        rc = np.hypot(bx + 0.5 * big - centre[0], by - 0.5 * big - centre[1])
-        half = big / math.sqrt(2.0)
-        lo_r, hi_r = rc - half, rc + half
-        sel = (hi_r > ring_lo) & (lo_r < ring_hi)
-        for e in edges:
-            sel |= (hi_r > e - 3.0) & (lo_r < e + 3.0)
-        crop_r0, crop_c0 = (h - hb * big) // 2, (w - wb * big) // 2
-        crop = (slice(crop_r0, crop_r0 + hb * big), slice(crop_c0, crop_c0 + wb * big))
-        if structure is not None:
-            mean, _ = _bin_valid(img[crop], valid[crop], big)
-            sel |= mean > structure
-        n = int(sel.sum()) * q * q + int((~sel).sum())
-        if n <= max_pixels or q * block >= min(h, w) // 4:
-            break
+
+    def choose(block):
+        """The coarse factor q giving the fewest bins for fine bins of `block`:
+        `(n, q, selected blocks, their edges, crop)`."""
+        best = None
+        for q in (2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24, 32, 40, 48, 64, 96, 128):
+            big = block * q
+            hb, wb = h // big, w // big
+            if hb < 2 or wb < 2 or (best is not None and big >= min(h, w) // 4):
+                break
+            bx, by = (np.asarray(v) for v in _pixel_edges(w, h, big, np.float64))
+            rc = np.hypot(bx + 0.5 * big - centre[0], by - 0.5 * big - centre[1])
+            half = big / math.sqrt(2.0)
+            lo_r, hi_r = rc - half, rc + half
+            sel = (hi_r > ring_lo) & (lo_r < ring_hi)
+            for e in edges:
+                sel |= (hi_r > e - 3.0) & (lo_r < e + 3.0)
+            r0, c0 = (h - hb * big) // 2, (w - wb * big) // 2
+            crop = (slice(r0, r0 + hb * big), slice(c0, c0 + wb * big))
+            if structure is not None:
+                mean, _ = _bin_valid(img[crop], valid[crop], big)
+                sel |= mean > structure
+            n = int(sel.sum()) * q * q + int((~sel).sum())
+            if best is None or n < best[0]:
+                best = (n, q, sel, bx, by, crop)
+        return best
+
+    # Where the band of structure alone holds more than `max_pixels` pixels, fine bins
+    # of 2, 3, ... pixels, no wider than the ring's radial width (`k` follows the bin).
+    n, q, sel, bx, by, crop = choose(block)
+    while n > max_pixels and not given and block + 1 <= prof.ring_width:
+        block += 1
+        n, q, sel, bx, by, crop = choose(block)
+    big = block * q
     # The fine bins of the selected blocks, and the coarse blocks elsewhere.
     sub = np.arange(q) * block
     fx = (bx[sel][:, None, None] + sub[None, None, :]).repeat(q, axis=1).ravel()
