@@ -414,17 +414,17 @@ def _samples_for(width: float) -> int:
     return 2 if width > 0.6 else 3 if width > 0.3 else 4
 
 
-def _bins(img, x, y):
-    """The image in 2 x 2 bins (the top-left 2 floor(H/2) x 2 floor(W/2) pixels):
+def _bins(img, x, y, b: int = 2):
+    """The image in b x b bins (the top-left b floor(H/b) x b floor(W/b) pixels):
     bin-centre coordinates (pixels) and NaN-aware means."""
     h, w = img.shape
-    hh, ww = h // 2 * 2, w // 2 * 2
-    a = img[:hh, :ww].reshape(hh // 2, 2, ww // 2, 2)
+    hh, ww = h // b * b, w // b * b
+    a = img[:hh, :ww].reshape(hh // b, b, ww // b, b)
     n = np.isfinite(a).sum(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(n > 0, np.nansum(a, axis=(1, 3)) / n, np.nan)
-    xb = x[:hh:2, :ww:2] + 0.5
-    yb = y[:hh:2, :ww:2] - 0.5
+    xb = x[:hh:b, :ww:b] + 0.5 * (b - 1)
+    yb = y[:hh:b, :ww:b] - 0.5 * (b - 1)
     return xb, yb, mean
 
 
@@ -449,12 +449,16 @@ def _from_view(x1: float, y1: float, f: float, rot: np.ndarray):
     return float(f * v[0] / v[2]), float(f * v[1] / v[2])
 
 
+_STAGE1_BINS = 10_000  # the most bins of the first stage
+
+
 def find_arcs(img, *, noise: float | None = None, focal: float | None = None) -> ArcGuess:
     """Measure the arcs of an off-axis star's image: the lens centre, the ring's
     radius and width, the primary's azimuth, the arcs' radii and flux ratio.
 
     Host-side numpy, float64. The model of the module docstring is fitted
-    (Levenberg-Marquardt) from several starting geometries on the image in 2 x 2 bins;
+    (Levenberg-Marquardt) from several starting geometries on the image in 2 x 2 bins
+    (larger on images over 40,000 pixels);
     the best one is fitted again at full resolution on the pixels near the arcs and the
     shadow's edge (the others, where the model is the floor, enter as their mean).
 
@@ -504,11 +508,13 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         return _nothing(floor0, sigma)
     lo, hi = _bounds(h, w, scale, shadow is not None)
 
-    # Stage 1: every start on 2 x 2 bins (a quarter of the pixels; bin noise sigma / 2).
+    # Stage 1: every start on b x b bins (b = 2, more on images over 40,000 pixels,
+    # so at most ~10,000 bins; bin noise sigma / b).
     if min(h, w) >= 48:
-        xb, yb, b2 = _bins(a, x, y)
-        okb = np.isfinite(b2)
-        d1, tol1 = _data(xb[okb], yb[okb], b2[okb], side=2.0), 0.25 * sigma**2
+        b = max(2, math.ceil(math.sqrt(h * w / _STAGE1_BINS)))
+        xb, yb, mb = _bins(a, x, y, b)
+        okb = np.isfinite(mb)
+        d1, tol1 = _data(xb[okb], yb[okb], mb[okb], side=float(b)), sigma**2 / b**2
     else:
         d1, tol1 = _data(x[ok], y[ok], vals), sigma**2
     flat1 = float(np.sum((d1.data - d1.data.mean()) ** 2))
