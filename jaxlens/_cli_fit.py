@@ -93,7 +93,8 @@ def run(args):
     dist_m = _positive("--distance-m")(args.distance_m) if args.distance_m is not None else None
 
     from ._camera import Camera
-    from ._fit import DEFAULT_FREE, PARAMETERS, fit as fit_scene
+    from ._fit import DEFAULT_FREE, fit as fit_scene
+    from ._fit.params import split_name
     from ._scene import Scene
     from ._sky import GaussianStar, Uniform
 
@@ -119,9 +120,10 @@ def run(args):
             raise ValueError(f"--fix {item!r} is not NAME=VALUE")
         if name.endswith("_deg"):
             name, value = name[:-4], math.radians(value)
-        if name not in PARAMETERS:
-            raise ValueError(f"--fix {item!r}: unknown parameter {name!r}; choose from "
-                             f"{', '.join(PARAMETERS)}")  # fmt: skip
+        try:
+            split_name(name)
+        except ValueError as e:
+            raise ValueError(f"--fix {item!r}: {e}") from None
         init[name] = value
         if name in free:
             free.remove(name)

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from .params import ANGLES, PARAMETERS
+from .params import is_angle, parameter
 from .units import mass_from_distance, schwarzschild_radius_m
 
 
@@ -18,7 +18,8 @@ class Fit:
     - `scene`: the fitted `Scene` (the model, its free parameters at their values).
     - `names`: the free parameters, in the order of `covariance`.
     - `values`, `errors`: dicts of every fitted parameter's value and standard error
-      (units of `PARAMETERS`: R_S, radians, the image's linear units, pixels).
+      (units of `PARAMETERS`: R_S, radians, the image's linear units, pixels; a
+      further star's under its index, `source_lon_2`, ...).
     - `covariance`, `correlation`: of the free parameters (physical units), from the
       Gauss-Newton curvature (the Laplace approximation) at the optimum.
     - `start`: the starting values.
@@ -74,7 +75,7 @@ class Fit:
             return errors[name[:-4]]
         for suffix in ("_deg", "_deg_err"):
             base = name[: -len(suffix)] if name.endswith(suffix) else None
-            if base in ANGLES and base in values:
+            if base in values and is_angle(base):
                 src = values if suffix == "_deg" else errors
                 return math.degrees(src[base])
         raise AttributeError(name)
@@ -96,7 +97,7 @@ class Fit:
         for name, v in self.values.items():
             e = self.errors.get(name, 0.0)
             out[name], out[f"{name}_err"] = float(v), float(e)
-            if name in ANGLES:
+            if is_angle(name):
                 out[f"{name}_deg"], out[f"{name}_deg_err"] = math.degrees(v), math.degrees(e)
         out.update(
             converged=self.converged, degenerate=self.degenerate, message=self.message,
@@ -111,9 +112,9 @@ class Fit:
         """A table of the parameters with their standard errors, and the verdict."""
         lines = []
         for name, v in self.values.items():
-            unit = PARAMETERS[name].unit
+            unit = parameter(name).unit
             e = self.errors.get(name, 0.0)
-            if name in ANGLES:
+            if is_angle(name):
                 v, e, unit = math.degrees(v), math.degrees(e), "deg"
             tag = "" if name in self.names else "  (fixed)"
             lines.append(f"{name:<12} = {v:.6g} +- {e:.2g} {unit}{tag}")

@@ -18,7 +18,7 @@ from . import psf as _psf
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
-from .params import PARAMETERS, apply, values_of
+from .params import apply, in_scene, parameter, split_name, star_of, values_of
 from .pixels import _grid_sets, _pixel_sets
 from .result import _result_name, _ring_verdict
 from .solve import dense_least_squares
@@ -59,9 +59,8 @@ class _Problem(eqx.Module):
 
 
 def _physical(theta, prob: _Problem):
-    return {n: PARAMETERS[n].transform.forward(theta[i]) for i, n in enumerate(prob.free)} | dict(
-        prob.fixed
-    )
+    free = {n: parameter(n).transform.forward(theta[i]) for i, n in enumerate(prob.free)}
+    return free | dict(prob.fixed)
 
 
 def _model(theta, scene, grid, otf, prob: _Problem):
@@ -69,7 +68,7 @@ def _model(theta, scene, grid, otf, prob: _Problem):
     the fine bins then the coarse blocks (one rule of order k for both), or with a PSF the regular
     grid of bins, rendered on a margin, blurred and cropped (row-major)."""
     p = _physical(theta, prob)
-    scene = apply(scene, {n: v for n, v in p.items() if PARAMETERS[n].where or "source" in n})
+    scene = apply(scene, {n: v for n, v in p.items() if in_scene(n)})
     table = escape_table(scene.camera.distance, knots=prob.knots)
     plan = _plan.plan(scene)
     refs = _kernel.ring_references(table, table.phi.dtype)
@@ -289,8 +288,9 @@ def fit(
         raise ValueError(f"only {int(valid.sum())} valid pixels: nothing to fit")
     free = tuple(free)
     for n in free:
-        if n not in PARAMETERS:
-            raise ValueError(f"unknown parameter {n!r}; choose from {', '.join(PARAMETERS)}")
+        star_index = split_name(n)[1]  # an unknown name is refused here
+        if star_index > 1:
+            star_of(scene.sky, star_index)  # ... and a star the sky does not have
     init = dict(init or {})
     if "fov_deg" in init:
         init["fov"] = math.radians(init.pop("fov_deg"))
@@ -321,7 +321,17 @@ def fit(
                              "no ring to fit")  # fmt: skip
         prof = _starts._profile(gray)
         masked = np.where(valid, img, np.nan)
-        if not prof.peak > 8.0 * prof.peak_noise and find_arcs(masked).score <= 10.0:
+        # The hole's image and the source: the arcs' centre, azimuth and radii.
+        arcs = find_arcs(masked)
+        found = arcs.score > 10.0
+        if found and arcs.offset > max(1.0, 0.5 * arcs.ring_width):
+            # Arcs, not a ring: the radial profile about the image centre mixes the two
+            # arcs' radii, so the ring start takes the arcs' Einstein radius and width.
+            r, wr = arcs.ring_radius, arcs.ring_width
+            prof = eqx.tree_at(lambda q: (q.ring_radius, q.ring_width, q.inner_half,
+                                          q.outer_half), prof,
+                               (r, wr, r - 1.1774 * wr, r + 1.1774 * wr))  # fmt: skip
+        if not prof.peak > 8.0 * prof.peak_noise and arcs.score <= 10.0:
             raise ValueError(
                 f"no ring or arcs found: the radial profile about the image centre peaks "
                 f"{prof.peak:.3g} above its floor, within 8 times its noise "
@@ -352,10 +362,17 @@ def fit(
                              if n in free and (n not in init or n in refined)}  # fmt: skip
         else:
             start |= init
+        arc_like = found and arcs.offset > max(1.0, 0.5 * arcs.ring_width)
+        if arc_like:
+            # The ring start's brightness and floor are the ring's azimuthal mean.
+            start |= {n: v for n, v in (("brightness", arcs.amplitude), ("floor", arcs.floor))
+                      if n in free and n not in init}  # fmt: skip
         f_px = 0.5 * w / math.tan(0.5 * start["fov"])
-        # The hole's image and the source: the arcs' centre, azimuth and radii.
-        arcs = find_arcs(masked, focal=f_px)
-        found = arcs.score > 10.0
+        if found and {"yaw", "pitch"} & set(free):
+            # A hole off the image centre: its image as a camera turned toward it sees
+            # the arcs (the oblique projection moves the ring's centre).
+            arcs = find_arcs(masked, focal=f_px)
+            found = arcs.score > 10.0
         # --- the compared bins. Without a PSF: full resolution where the image has
         # structure (the ring, the arcs, the shadow's edge), coarse blocks where it is
         # flat; with one, a regular grid of bins rendered on a margin the PSF reaches.
@@ -377,8 +394,7 @@ def fit(
         sky = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), scene.sky)
         # Values given for parameters held fixed are the model's.
         held = {n: v for n, v in init.items() if n not in free}
-        model_scene = apply(Scene(cam, sky), {n: v for n, v in held.items()
-                                              if PARAMETERS[n].where or "source" in n})  # fmt: skip
+        model_scene = apply(Scene(cam, sky), {n: v for n, v in held.items() if in_scene(n)})
         pad, otf = 0, None
         if psf_kind is None:
             grid = tuple(jnp.asarray(np.concatenate(v)) for v in zip(pix.fine, pix.coarse_edges))
@@ -402,7 +418,7 @@ def fit(
         clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
         args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(weight), clip,
                 jnp.asarray(gain if gain is not None else 1.0))  # fmt: skip
-        theta0 = np.asarray([PARAMETERS[n].transform.inverse(start[n]) for n in free])
+        theta0 = np.asarray([parameter(n).transform.inverse(start[n]) for n in free])
         # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
         # refined by a scan of the loss along their azimuth.
         for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
@@ -451,9 +467,8 @@ def fit(
         theta, r = np.asarray(theta), np.asarray(r).ravel()
         jac = np.asarray(jac).reshape(r.size, -1)
         model = np.asarray(model)
-        phys = {n: float(PARAMETERS[n].transform.forward(theta[i])) for i, n in enumerate(free)}
-        fitted = apply(model_scene, {n: v for n, v in phys.items()
-                                     if PARAMETERS[n].where or "source" in n})  # fmt: skip
+        phys = {n: float(parameter(n).transform.forward(theta[i])) for i, n in enumerate(free)}
+        fitted = apply(model_scene, {n: v for n, v in phys.items() if in_scene(n)})
     return _finish(fitted, free, phys, start, theta, r, jac, result, steps, model, data, count,
                    kind, noise_sigma, gain, block, k, prob, t_start,
                    sigma_known, pix, math.isfinite(prof.shadow_radius))  # fmt: skip
@@ -480,7 +495,7 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
             cov_int = np.linalg.pinv(norm) / np.outer(ds, ds)
     # Gaussian noise estimated from the image: the residuals set its scale.
     s2 = chi2_dof if kind == "gaussian" and not sigma_known else 1.0
-    g = np.diag([PARAMETERS[n].transform.slope(phys[n]) for n in free])
+    g = np.diag([parameter(n).transform.slope(phys[n]) for n in free])
     cov = g @ cov_int @ g.T * s2
     err = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -490,7 +505,7 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
     notes, degenerate = [], False
     if not ok:
         notes.append(f"the solver stopped: {_result_name(result)}")
-    at_bound = [n for n in free if PARAMETERS[n].transform.at_bound(phys[n])]
+    at_bound = [n for n in free if parameter(n).transform.at_bound(phys[n])]
     if at_bound:
         notes.append("at the bound of its range: " + ", ".join(at_bound))
     # Parameters the image does not separate: each loose (relative error above 20 %)
@@ -531,7 +546,9 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
     values = {
         n: float(v)
         for n, v in values.items()
-        if n in free or n in ("distance", "fov", "source_lon", "source_lat", "sigma")
+        if n in free
+        or n in ("distance", "fov")
+        or split_name(n)[0] in ("source_lon", "source_lat", "sigma")
     }
     errors = {n: float(e) for n, e in zip(free, err)}
     model_c = pix.paint(model)

@@ -71,24 +71,30 @@ class Parameter:
     where: Callable | None = None
 
 
-def _part(sky, cls, hint: str):
-    parts = sky.parts if isinstance(sky, SkySum) else (sky,)
-    for p in parts:
-        if isinstance(p, cls):
-            return p
-    raise ValueError(f"the scene's sky has no {cls.__name__} to fit (add {hint})")
+def _parts(sky, cls):
+    return [p for p in (sky.parts if isinstance(sky, SkySum) else (sky,)) if isinstance(p, cls)]
 
 
-def star_of(sky) -> GaussianStar:
-    """The first `GaussianStar` of a sky (the source a fit moves)."""
-    return _part(sky, GaussianStar, "jl.GaussianStar(...)")
+def star_of(sky, index: int = 1) -> GaussianStar:
+    """The `index`-th `GaussianStar` of a sky, counting from 1 (the source a fit moves)."""
+    stars = _parts(sky, GaussianStar)
+    if len(stars) < index:
+        have = f"only {len(stars)}" if stars else "no"
+        raise ValueError(f"the scene's sky has {have} GaussianStar, so no star {index} to fit "
+                         "(add jl.GaussianStar(...))")  # fmt: skip
+    return stars[index - 1]
 
 
 def floor_of(sky) -> Uniform:
     """The first `Uniform` level of a sky (the floor a fit adjusts)."""
-    return _part(sky, Uniform, "jl.Uniform(0.0)")
+    levels = _parts(sky, Uniform)
+    if not levels:
+        raise ValueError("the scene's sky has no Uniform to fit (add jl.Uniform(0.0))")
+    return levels[0]
 
 
+# The star's parameters: `NAME` is the sky's first GaussianStar, `NAME_i` its i-th (i >= 2).
+STAR = ("source_lon", "source_lat", "sigma", "brightness")
 PARAMETERS = {
     p.name: p
     for p in (
@@ -108,41 +114,83 @@ PARAMETERS = {
 ANGLES = ("fov", "yaw", "pitch", "source_lon", "source_lat", "sigma")
 
 
+def split_name(name: str) -> tuple[str, int]:
+    """`("sigma", 2)` for `"sigma_2"`; `(name, 1)` for a name without a star index.
+    Raises `ValueError` for a name that is no parameter."""
+    base, sep, tail = name.rpartition("_")
+    if sep and base in STAR and tail.isdigit() and int(tail) >= 2:
+        return base, int(tail)
+    if name in PARAMETERS:
+        return name, 1
+    further = ", ".join(n + "_2" for n in STAR)
+    raise ValueError(f"unknown parameter {name!r}; choose from {', '.join(PARAMETERS)} "
+                     f"(and {further}, ... for further stars)")  # fmt: skip
+
+
+def is_angle(name: str) -> bool:
+    """Whether the parameter `name` is an angle (radians; reported in degrees too)."""
+    return split_name(name)[0] in ANGLES
+
+
+def parameter(name: str) -> Parameter:
+    """The `Parameter` called `name`: one of `PARAMETERS`, or a star's parameter with
+    the index of its `GaussianStar` in the sky (`brightness_2`: the second star's)."""
+    base, i = split_name(name)
+    p = PARAMETERS[base]
+    if i == 1 or base in ("source_lon", "source_lat"):
+        return dataclasses.replace(p, name=name)
+    where = {"sigma": lambda s: star_of(s.sky, i).sigma,
+             "brightness": lambda s: star_of(s.sky, i).brightness}[base]  # fmt: skip
+    return dataclasses.replace(p, name=name, where=where)
+
+
+def in_scene(name: str) -> bool:
+    """Whether `name` is a field of the scene (else a fit's own: PSF width, ring flux)."""
+    return parameter(name).where is not None or split_name(name)[0] in STAR[:2]
+
+
+def _suffix(i: int) -> str:
+    return "" if i == 1 else f"_{i}"
+
+
 def values_of(scene) -> dict:
-    """The current value of every scene parameter (host floats)."""
+    """The current value of every scene parameter (host floats), each star's under its
+    own names (`sigma`, `sigma_2`, ...)."""
     out = {}
-    for name, p in PARAMETERS.items():
-        if p.where is not None:
-            try:
-                out[name] = float(jnp.mean(jnp.asarray(p.where(scene))))
-            except ValueError:
-                continue
-    try:
-        lon, lat = angles_from_direction(star_of(scene.sky).direction)
-        out["source_lon"], out["source_lat"] = float(lon), float(lat)
-    except ValueError:
-        pass
+    for name in ("distance", "fov", "yaw", "pitch", "floor"):
+        try:
+            out[name] = float(jnp.mean(jnp.asarray(PARAMETERS[name].where(scene))))
+        except ValueError:
+            continue
+    for i, star in enumerate(_parts(scene.sky, GaussianStar), start=1):
+        lon, lat = angles_from_direction(star.direction)
+        out[f"source_lon{_suffix(i)}"], out[f"source_lat{_suffix(i)}"] = float(lon), float(lat)
+        out[f"sigma{_suffix(i)}"] = float(jnp.mean(star.sigma))
+        out[f"brightness{_suffix(i)}"] = float(jnp.mean(star.brightness))
     return out
 
 
 def apply(scene, values: dict):
-    """`scene` with the parameters in `values` (arrays, possibly traced) set."""
+    """`scene` with the parameters in `values` (arrays, possibly traced) set; names
+    that are no field of the scene (`psf_sigma`, `ring_flux`) are passed over."""
     dt = scene.camera.dtype
+    moved = {}
     for name, v in values.items():
-        p = PARAMETERS[name]
+        base, i = split_name(name)
+        if base in ("source_lon", "source_lat"):
+            moved.setdefault(i, {})[base] = v
+            continue
+        p = parameter(name)
         if p.where is None:
             continue
         old = p.where(scene)
         new = jnp.broadcast_to(jnp.asarray(v, dt), jnp.shape(old)).astype(jnp.asarray(old).dtype)
         scene = eqx.tree_at(p.where, scene, new)
-    if "source_lon" in values or "source_lat" in values:
-        cur = values_of_source(scene)
-        lon = values.get("source_lon", cur[0])
-        lat = values.get("source_lat", cur[1])
-        d = direction_from_angles(lon, lat).astype(star_of(scene.sky).direction.dtype)
-        scene = eqx.tree_at(lambda s: star_of(s.sky).direction, scene, d)
+    for i, given in moved.items():
+        star = star_of(scene.sky, i)
+        cur = angles_from_direction(star.direction)
+        lon = given.get("source_lon", cur[0])
+        lat = given.get("source_lat", cur[1])
+        d = direction_from_angles(lon, lat).astype(star.direction.dtype)
+        scene = eqx.tree_at(lambda s: star_of(s.sky, i).direction, scene, d)
     return scene
-
-
-def values_of_source(scene):
-    return angles_from_direction(star_of(scene.sky).direction)
