@@ -1,19 +1,41 @@
 """Benchmark: fitting D and FOV to Einstein rings made by an independent renderer.
 
-    .venv/bin/python benchmarks/bench_fit.py [--cases N] [--keep DIR]
+    .venv/bin/python benchmarks/bench_fit.py [--only rings|arcs] [--cases N] [--keep DIR]
+    .venv/bin/python benchmarks/bench_fit.py --render-only [--cases N] [--keep DIR]
 
-Writes benchmarks/results/fit.md. Each ring is rendered here by a renderer that shares
-no code with jaxlens: the escape angle from scipy quadrature of the orbit integral
-(the turning-point singularity removed by u = u_p - s^2), splined in ln(alpha -
-alpha_sh), and every pixel averaged over 12 x 12 samples (PHYSICS.md's pixel
-convention). Gaussian noise is added, the image clipped to [0, 1] and stored as an
-8- or 16-bit grey PNG (linear values, no sRGB transfer). Each fit is one fresh
-`jaxlens fit IMAGE --json` process with the persistent compile cache switched off,
-so its wall time includes starting Python, importing JAX and compiling.
+Writes benchmarks/results/fit.md and fit.json. Each image is rendered here by a
+renderer that shares no code with jaxlens: the escape angle from scipy quadrature of the
+orbit integral (the turning-point singularity removed by u = u_p - s^2), splined in
+ln(alpha - alpha_sh), and every pixel averaged over 12 x 12 samples (PHYSICS.md's pixel
+convention). Each fit is one fresh `jaxlens fit IMAGE --json` process with the
+persistent compile cache switched off, so its wall time includes starting Python,
+importing JAX and compiling.
 
-The cases cover the issue's held-out range: D from 12 to 40, FOV from 40 to 90 deg,
-8- and 16-bit PNGs, noise, with and without a floor, the star's width given or fitted,
-images from 256 x 256 to 800 x 600.
+Two sections, one report:
+
+- **Rings** (`CASES`): a Gaussian star exactly behind the hole. Gaussian noise is added,
+  the image clipped to [0, 1] and stored as an 8- or 16-bit grey PNG (linear values, no
+  sRGB transfer). The cases cover the issue's held-out range: D from 12 to 40, FOV from
+  40 to 90 deg, 8- and 16-bit PNGs, noise, with and without a floor, the star's width
+  given or fitted, images from 256 x 256 to 800 x 600.
+- **General cases** (`ARC_CASES`): a star off the axis at (lon, lat), 0.3 to 4.1 deg
+  from it (lon > 0 right, lat > 0 up; a sample's ray leaves along n = -cos(Phi) f +
+  sin(Phi) (cos(psi) e_x + sin(psi) e_y), psi its image azimuth), so two arcs; some with
+  a Gaussian point-spread function of 1 to 2 px (rendered with a margin of ceil(5 S) px
+  at the same focal length, blurred by `scipy.ndimage.gaussian_filter`, cropped: light
+  from beyond the frame spreads into it), Gaussian noise or Poisson counts (value =
+  Poisson(gain x clean) / gain, the gain left for the fit to estimate), rings wider than
+  the frame's height in most; D from 15 to 200, FOV from 12 to 70 deg, 256 x 192 to
+  640 x 480. The fit gets `--psf-sigma-px`, `--noise poisson` and `--star-sigma-deg` as
+  the case says. The report adds the source position's error and the pulls of lon, lat.
+
+`--only rings|arcs` runs one section; the other section's rows are then taken from the
+existing fit.json (where it has them: rows without a "section" key are rings) and
+reported again under a note that they were not run this time, so a one-section run
+leaves a complete report. `--cases N` runs the first N cases of each section run.
+`--render-only` renders the general cases' clean images at 3 x 3 samples a pixel (a few
+seconds each), writes their noisy PNGs and prints (peak - floor) / noise, the Einstein
+ring's angle and the frame's half-height and half-width: no fits, no report.
 """
 
 import argparse
@@ -32,6 +54,7 @@ import numpy as np
 import OpenImageIO as oiio
 from scipy.integrate import IntegrationWarning, quad
 from scipy.interpolate import CubicSpline
+from scipy.ndimage import gaussian_filter
 from scipy.optimize import brentq
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -59,6 +82,33 @@ CASES = [
     (40.0, 90.0, 800, 600, 2.5, 0.8, 0.00, 0.005, 8, False),
 ]
 
+
+# General cases: (D, FOV deg, width, height, star lon deg, lat deg, sigma deg, brightness,
+# floor, PSF sigma px (0: none), noise, bits, sigma given); noise is a Gaussian sigma or
+# ("poisson", gain in counts per unit). Each comment: what the case is for, and the
+# Einstein ring's angle against the frame's half-height (deg); "cut" when it is wider.
+ARC_CASES = [
+    # near the hole, wide view, two arcs well inside the frame (ring 23.7, frame 27.7)
+    (15.0, 70.0, 640, 480, 3.0, 2.0, 1.0, 0.8, 0.05, 0, 0.01, 16, True),
+    # negative lon only; Poisson, 8-bit, PSF 1.5 px, sigma fitted (20.2, 23.4)
+    (20.0, 60.0, 512, 384, -3.0, 0.0, 1.0, 0.7, 0.03, 1.5, ("poisson", 1000.0), 8, False),
+    # lat only, no floor (no shadow edge: sigma given), PSF 1 px (17.9, 17.3: cut)
+    (25.0, 45.0, 400, 300, 0.0, 1.5, 1.2, 0.9, 0.0, 1.0, 0.01, 16, True),
+    # the largest offset, 4.1 deg: short arcs, bright floor, 8-bit, sigma fitted (16.2, 15.3: cut)
+    (30.0, 40.0, 320, 240, 4.0, -1.0, 1.0, 0.8, 0.1, 0, 0.02, 8, False),
+    # the smallest offset, 0.3 deg: a nearly full ring; Poisson, PSF 2 px (13.9, 13.7: cut)
+    (40.0, 36.0, 640, 480, 0.2, 0.22, 0.8, 0.75, 0.02, 2.0, ("poisson", 2000.0), 16, True),
+    # up and left, arcs near the frame's top; PSF 1.2 px, 8-bit, sigma fitted (11.2, 11.4)
+    (60.0, 30.0, 400, 300, -1.5, 1.5, 0.6, 0.85, 0.05, 1.2, 0.01, 8, False),
+    # far camera, narrow view; Poisson at a low gain on a bright floor (8.5, 7.5: cut)
+    (100.0, 20.0, 320, 240, 0.8, 0.0, 0.4, 0.7, 0.1, 0, ("poisson", 800.0), 16, True),
+    # the smallest image, 256 x 192, no floor, 8-bit, PSF 1 px (6.9, 6.0: cut)
+    (150.0, 16.0, 256, 192, 0.5, -0.5, 0.3, 0.9, 0.0, 1.0, 0.015, 8, True),
+    # the farthest camera and narrowest view, the arcs in the corners; sigma fitted (5.9, 4.5: cut)
+    (200.0, 12.0, 640, 480, 0.25, 0.25, 0.2, 0.85, 0.05, 1.5, 0.01, 8, False),
+    # Poisson with no floor (zero counts off the arcs), negative lon and lat (7.7, 6.8: cut)
+    (120.0, 18.0, 480, 360, -1.0, -0.5, 0.35, 0.8, 0.0, 0, ("poisson", 600.0), 16, True),
+]
 
 # ------------------------------------------------------------ independent renderer
 
@@ -97,14 +147,19 @@ def shadow_alpha(d):
     return math.asin(B_C * math.sqrt(1.0 - 1.0 / d) / d)
 
 
+def phi_spline(d, a_max):
+    """Phi as a cubic spline in ln(alpha - alpha_sh), 3000 knots up to alpha = a_max."""
+    a_sh = shadow_alpha(d)
+    tau = np.linspace(math.log(1e-9 * a_sh), math.log(a_max - a_sh), 3000)
+    phi = np.array([escape_angle(a_sh + math.exp(t), d) for t in tau])
+    return CubicSpline(tau, phi)
+
+
 def ring_image(d, fov, w, h, sigma, amp, floor, k=12):
     """Area-averaged image (k x k samples a pixel) of a Gaussian star behind the hole."""
     f = (w / 2) / math.tan(fov / 2)
     a_sh = shadow_alpha(d)
-    a_max = math.atan(math.hypot(w, h) / 2 / f) + 1e-3
-    tau = np.linspace(math.log(1e-9 * a_sh), math.log(a_max - a_sh), 3000)
-    phi = np.array([escape_angle(a_sh + math.exp(t), d) for t in tau])
-    spline = CubicSpline(tau, phi)
+    spline = phi_spline(d, math.atan(math.hypot(w, h) / 2 / f) + 1e-3)
     sub = (np.arange(k) + 0.5) / k
     x = (np.arange(w)[:, None] + sub[None, :]).ravel() - w / 2
     img = np.empty((h, w))
@@ -116,6 +171,50 @@ def ring_image(d, fov, w, h, sigma, amp, floor, k=12):
         val = np.where(alpha > a_sh, amp * np.exp(-0.5 * (sep / sigma) ** 2) + floor, 0.0)
         img[j] = val.reshape(k, w, k).mean(axis=(0, 2))
     return img
+
+
+def sky_direction(lon, lat):
+    """Unit vector (components along f, e_x, e_y) at longitude lon, latitude lat (rad)."""
+    return np.array([math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)])
+
+
+def arc_image(d, fov, w, h, sigma, amp, floor, lon, lat, margin=0, k=12):
+    """Area-averaged image (k x k samples a pixel) of a Gaussian star at (lon, lat), on a
+    frame enlarged by `margin` pixels on every side at the same focal length, so
+    `(h + 2 margin, w + 2 margin)`.
+
+    A sample at (x, y) looks at alpha = atan(hypot(x, y) / f_px) from the hole, image
+    azimuth psi = atan2(y, x); its ray leaves along n = -cos(Phi) f + sin(Phi) (cos(psi)
+    e_x + sin(psi) e_y) (Phi = pi: exactly behind the hole) and sees the star at the
+    angle atan2(|n x s|, n . s) from its centre.
+    """
+    f = (w / 2) / math.tan(fov / 2)
+    ww, hh = w + 2 * margin, h + 2 * margin
+    a_sh = shadow_alpha(d)
+    spline = phi_spline(d, math.atan(math.hypot(ww, hh) / 2 / f) + 1e-3)
+    s0, s1, s2 = sky_direction(lon, lat)
+    sub = (np.arange(k) + 0.5) / k
+    x = (np.arange(ww)[:, None] + sub[None, :]).ravel()[None, :] - ww / 2
+    img = np.empty((hh, ww))
+    for j in range(hh):
+        y = (hh / 2 - (j + sub))[:, None]
+        rho = np.hypot(x, y)
+        alpha = np.arctan(rho / f)
+        phi = spline(np.log(np.maximum(alpha - a_sh, 1e-9 * a_sh)))
+        n0, sp = -np.cos(phi), np.sin(phi) / np.maximum(rho, 1e-300)
+        n1, n2 = sp * x, sp * y
+        cross = np.sqrt((n1 * s2 - n2 * s1) ** 2 + (n2 * s0 - n0 * s2) ** 2
+                        + (n0 * s1 - n1 * s0) ** 2)  # fmt: skip
+        sep = np.arctan2(cross, n0 * s0 + n1 * s1 + n2 * s2)
+        val = np.where(alpha > a_sh, amp * np.exp(-0.5 * (sep / sigma) ** 2) + floor, 0.0)
+        img[j] = val.reshape(k, ww, k).mean(axis=(0, 2))
+    return img
+
+
+def einstein_alpha(d):
+    """The Einstein ring's angle from the hole: Phi(alpha) = pi (rad)."""
+    a_sh = shadow_alpha(d)
+    return brentq(lambda a: escape_angle(a, d) - math.pi, 1.001 * a_sh, 1.2, xtol=1e-14)
 
 
 def write_png(path, img, bits):
@@ -130,11 +229,13 @@ def write_png(path, img, bits):
 # ---------------------------------------------------------------------------- run
 
 
-def fit_file(path, sigma_deg):
+def fit_file(path, sigma_deg, extra=()):
+    """One fresh `jaxlens fit PATH --json [--star-sigma-deg S] [extra...]` process."""
     # The `jaxlens` entry point of the environment running this script.
     argv = [str(pathlib.Path(sys.executable).with_name("jaxlens")), "fit", str(path), "--json"]
     if sigma_deg is not None:
         argv += ["--star-sigma-deg", repr(sigma_deg)]
+    argv += list(extra)
     env = dict(os.environ, JAXLENS_CACHE_DIR="")
     t0 = time.perf_counter()
     done = subprocess.run(argv, capture_output=True, text=True, env=env)
@@ -144,50 +245,184 @@ def fit_file(path, sigma_deg):
     return json.loads(done.stdout.strip().splitlines()[-1]), wall
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=len(CASES))
-    ap.add_argument("--keep", type=pathlib.Path, help="keep the PNGs in this folder")
-    args = ap.parse_args()
-    folder = args.keep or pathlib.Path(tempfile.mkdtemp(prefix="jaxlens-fit-"))
-    folder.mkdir(parents=True, exist_ok=True)
-    load = os.getloadavg()[0]
+def run_rings(n, folder):
     rows = []
     rng = np.random.default_rng(2026)
-    for i, (d, fov, w, h, sig, amp, floor, noise, bits, given) in enumerate(CASES[: args.cases]):
+    for i, (d, fov, w, h, sig, amp, floor, noise, bits, given) in enumerate(CASES[:n]):
         t0 = time.perf_counter()
         clean = ring_image(d, math.radians(fov), w, h, math.radians(sig), amp, floor)
         t_render = time.perf_counter() - t0
         path = folder / f"ring{i:02d}.png"
         write_png(path, clean + noise * rng.standard_normal(clean.shape), bits)
         out, wall = fit_file(path, sig if given else None)
-        row = dict(case=i, d=d, fov=fov, w=w, h=h, sig=sig, floor=floor, noise=noise,
-                   bits=bits, given=given, wall=wall, render=t_render, fit=out)  # fmt: skip
+        row = dict(section="rings", case=i, d=d, fov=fov, w=w, h=h, sig=sig, floor=floor,
+                   noise=noise, bits=bits, given=given, wall=wall, render=t_render,
+                   fit=out)  # fmt: skip
         rows.append(row)
         if "error" in out:
-            print(f"case {i}: error {out['error']}", flush=True)
+            print(f"ring {i}: error {out['error']}", flush=True)
             continue
         print(
-            f"case {i}: D {out['distance']:.4f}+-{out['distance_err']:.2g} (true {d}), "
+            f"ring {i}: D {out['distance']:.4f}+-{out['distance_err']:.2g} (true {d}), "
             f"FOV {out['fov_deg']:.4f}+-{out['fov_deg_err']:.2g} (true {fov}), "
             f"{out['num_steps']} steps, {wall:.1f} s, degenerate={out['degenerate']}",
             flush=True,
         )
-    write_report(rows, load)
+    return rows
 
 
-def write_report(rows, load):
+def arc_frame(case, k=12):
+    """The clean frame of an arc case (the PSF applied, cropped) and the time it took."""
+    d, fov, w, h, lon, lat, sig, amp, floor, psf, _noise, _bits, _given = case
+    t0 = time.perf_counter()
+    margin = math.ceil(5 * psf) if psf else 0
+    big = arc_image(d, math.radians(fov), w, h, math.radians(sig), amp, floor,
+                    math.radians(lon), math.radians(lat), margin=margin, k=k)  # fmt: skip
+    if psf:
+        big = gaussian_filter(big, psf, mode="nearest", truncate=6)[margin:-margin, margin:-margin]
+    return big, time.perf_counter() - t0
+
+
+def peak_to_noise(clean, floor, noise):
+    """(Brightest pixel - floor) / the noise at that pixel (Poisson: sqrt(peak / gain))."""
+    peak = float(clean.max())
+    sd = math.sqrt(peak / noise[1]) if isinstance(noise, tuple) else noise
+    return (peak - floor) / sd
+
+
+def frame_check(case):
+    """The Einstein ring's angle and the frame's half-height and half-width (deg)."""
+    d, fov, w, h = case[:4]
+    half_w = math.radians(fov) / 2
+    half_h = math.atan(h / w * math.tan(half_w))
+    return math.degrees(einstein_alpha(d)), math.degrees(half_h), math.degrees(half_w)
+
+
+def run_arcs(n, folder, render_only=False):
+    rows = []
+    for i, case in enumerate(ARC_CASES[:n]):
+        d, fov, w, h, lon, lat, sig, amp, floor, psf, noise, bits, given = case
+        rng = np.random.default_rng([2027, i])
+        clean, t_render = arc_frame(case, k=3 if render_only else 12)
+        snr = peak_to_noise(clean, floor, noise)
+        if isinstance(noise, tuple):
+            data = rng.poisson(noise[1] * clean) / noise[1]
+        else:
+            data = clean + noise * rng.standard_normal(clean.shape)
+        path = folder / f"arc{i:02d}.png"
+        write_png(path, data, bits)  # clipped to [0, 1] there
+        if render_only:
+            ring, half_h, half_w = frame_check(case)
+            print(f"arc {i}: peak {clean.max():.3f}, (peak - floor) / noise {snr:.0f}, "
+                  f"Einstein ring {ring:.2f} deg, frame half-height {half_h:.2f}, half-width "
+                  f"{half_w:.2f} deg, share above 1 {np.mean(data > 1):.1e}, "
+                  f"{t_render:.1f} s -> {path}", flush=True)  # fmt: skip
+            continue
+        extra = ["--psf-sigma-px", repr(psf)] if psf else []
+        if isinstance(noise, tuple):
+            extra += ["--noise", "poisson"]
+        out, wall = fit_file(path, sig if given else None, extra)
+        row = dict(section="arcs", case=i, d=d, fov=fov, w=w, h=h, lon=lon, lat=lat, sig=sig,
+                   amp=amp, floor=floor, psf=psf,
+                   noise="poisson" if isinstance(noise, tuple) else noise,
+                   gain=noise[1] if isinstance(noise, tuple) else None, bits=bits, given=given,
+                   snr=snr, wall=wall, render=t_render, argv=extra, fit=out)  # fmt: skip
+        rows.append(row)
+        if "error" in out:
+            print(f"arc {i}: error {out['error']}", flush=True)
+            continue
+        print(
+            f"arc {i}: D {out['distance']:.4f}+-{out['distance_err']:.2g} (true {d}), "
+            f"FOV {out['fov_deg']:.4f}+-{out['fov_deg_err']:.2g} (true {fov}), "
+            f"lon {out['source_lon_deg']:.4f}+-{out['source_lon_deg_err']:.2g} (true {lon}), "
+            f"lat {out['source_lat_deg']:.4f}+-{out['source_lat_deg_err']:.2g} (true {lat}), "
+            f"{out['num_steps']} steps, {wall:.1f} s, converged={out['converged']}, "
+            f"degenerate={out['degenerate']}",
+            flush=True,
+        )
+    return rows
+
+
+def previous_rows(section):
+    """The rows of `section` in the existing fit.json (rows without a section: rings)."""
+    try:
+        old = json.loads((RESULTS / "fit.json").read_text())
+    except (OSError, ValueError):
+        return []
+    return [r for r in old if isinstance(r, dict) and r.get("section", "rings") == section]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", choices=("rings", "arcs"), help="run one section (default both)")
+    ap.add_argument("--cases", type=int, help="the first N cases of each section (default all)")
+    ap.add_argument("--keep", type=pathlib.Path, help="keep the PNGs in this folder")
+    ap.add_argument("--render-only", action="store_true",
+                    help="render the arc cases' images (3 x 3 samples a pixel) and print their "
+                    "visibility; no fits, no report")  # fmt: skip
+    args = ap.parse_args()
+    folder = args.keep or pathlib.Path(tempfile.mkdtemp(prefix="jaxlens-fit-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    if args.render_only:
+        run_arcs(len(ARC_CASES) if args.cases is None else args.cases, folder, render_only=True)
+        return
+    load = os.getloadavg()[0]
+    sections = {}
+    for name, cases, run in (("rings", CASES, run_rings), ("arcs", ARC_CASES, run_arcs)):
+        if args.only in (None, name):
+            sections[name] = (run(len(cases) if args.cases is None else args.cases, folder), True)
+        else:
+            sections[name] = (previous_rows(name), False)
+    write_report(sections, load)
+
+
+def write_report(sections, load):
+    """fit.md: the machine, the rings, the general cases; fit.json: both sections' rows.
+
+    A section not run this time keeps the rows the previous fit.json held for it."""
+    (rings, rings_ran), (arcs, arcs_ran) = sections["rings"], sections["arcs"]
     lines = [
         "# Fit benchmark: Einstein rings from an independent renderer",
         "",
         _common.machine_markdown().rstrip(),
         f"- Load average {load:.1f} at the start. Produced by `benchmarks/bench_fit.py`.",
         "",
+    ]
+    lines += ring_lines(rings, None if rings_ran else _not_run_note("rings", rings))
+    lines += ["", "## General cases: arcs, PSF, Poisson", ""]
+    lines += arc_lines(arcs, None if arcs_ran else _not_run_note("arcs", arcs))
+    (RESULTS / "fit.json").write_text(json.dumps(rings + arcs, indent=1) + "\n")
+    (RESULTS / "fit.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {RESULTS / 'fit.md'}")
+
+
+def _not_run_note(section, rows):
+    other = "arcs" if section == "rings" else "rings"
+    if rows:
+        return (f"**Not run this time** (`--only {other}`): the {len(rows)} rows below are "
+                "those the previous `fit.json` held, from an earlier run (machine and "
+                "commit may differ from the lines above).")  # fmt: skip
+    return f"**Not run this time** (`--only {other}`), and `fit.json` held no earlier rows."
+
+
+def _walls_line(walls, goal):
+    return (f"- Wall time per fit, compile included: median {np.median(walls):.1f} s, "
+            f"largest **{max(walls):.1f} s** (goal: {goal}).")  # fmt: skip
+
+
+def ring_lines(rows, note=None):
+    lines = [
         "Each ring: scipy quadrature of the orbit (no jaxlens code), 12 x 12 samples a "
         "pixel, Gaussian noise, clipped to [0, 1], stored as a linear 8- or 16-bit grey "
         "PNG. Each fit: one fresh `jaxlens fit IMAGE --json` process, persistent compile "
         "cache off, so the time includes Python start-up, JAX import and compilation. "
         "'pull' is (fit - truth) / reported standard error.",
+    ]
+    if note:
+        lines += ["", note]
+    if not rows:
+        return lines
+    lines += [
         "",
         "| D | FOV deg | size | bits | floor | noise | sigma | D fit | D rel. err | D pull "
         "| FOV fit | FOV rel. err | FOV pull | steps | wall s |",
@@ -243,13 +478,120 @@ def write_report(rows, load):
             f"floor {r['floor']:g}, sigma {'given' if r['given'] else 'fitted'}: "
             f"D off by {r['distance'] / r['d'] - 1:+.2e}; message: {r['message']}"
         )
-    lines.append(
-        f"- Wall time per fit, compile included: median {np.median(walls):.1f} s, "
-        f"largest **{max(walls):.1f} s** (goal: under 60 s)."
-    )
-    (RESULTS / "fit.json").write_text(json.dumps(rows, indent=1) + "\n")
-    (RESULTS / "fit.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {RESULTS / 'fit.md'}")
+    lines.append(_walls_line(walls, "under 60 s"))
+    return lines
+
+
+def _angle_deg(a, b):
+    """Angle between two unit vectors (deg), atan2(|a x b|, a . b)."""
+    return math.degrees(math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b))))
+
+
+def _pull(fit, err, truth):
+    return (fit - truth) / err if err and err > 0 else float("nan")
+
+
+def arc_lines(rows, note=None):
+    lines = [
+        "Each case: a Gaussian star of width sigma at sky position (lon, lat) (0, 0 exactly "
+        "behind the hole, lon > 0 to the right, lat > 0 up), drawn by the same independent "
+        "renderer: a sample's ray leaves along n = -cos(Phi) f + sin(Phi) (cos(psi) e_x + "
+        "sin(psi) e_y), psi its image azimuth, and sees the star at atan2(|n x s|, n . s) "
+        "from its centre; 12 x 12 samples a pixel. With a point-spread function of S px the "
+        "frame is rendered with a margin of ceil(5 S) px at the same focal length, blurred "
+        "(`scipy.ndimage.gaussian_filter`, mode nearest, truncate 6) and cropped, so light "
+        "from beyond the frame's edge spreads into it. Then Gaussian noise, or Poisson "
+        "counts (value = Poisson(G x clean) / G), clipped to [0, 1], a linear 8- or 16-bit "
+        "grey PNG. The fit gets `--psf-sigma-px S`, `--noise poisson` (the gain estimated "
+        "by the fit) and `--star-sigma-deg` where the table says so. Offset: the star's "
+        "angle from the axis; 'pos. err': the angle between the fitted and the true "
+        "direction of the star; S/N: (brightest clean pixel - floor) / the noise there.",
+    ]
+    if note:
+        lines += ["", note]
+    if not rows:
+        return lines
+    lines += [
+        "",
+        "| D | FOV deg | size | bits | floor | lon, lat (offset) deg | PSF px | noise | S/N "
+        "| sigma deg | D fit | D rel. err | D pull | FOV fit | FOV rel. err | FOV pull "
+        "| lon fit deg | lon pull | lat fit deg | lat pull | pos. err deg | steps | wall s |",
+        "|" + "---|" * 23,
+    ]
+    done = []
+    for r in rows:
+        s = sky_direction(math.radians(r["lon"]), math.radians(r["lat"]))
+        offset = math.degrees(math.atan2(math.hypot(s[1], s[2]), s[0]))
+        sig = f"{r['sig']} given" if r["given"] else f"fitted ({r['sig']})"
+        noise = f"poisson gain {r['gain']:g}" if r["noise"] == "poisson" else f"{r['noise']:g}"
+        head = (f"| {r['d']:g} | {r['fov']:g} | {r['w']}x{r['h']} | {r['bits']} | "
+                f"{r['floor']:g} | {r['lon']:+g}, {r['lat']:+g} ({offset:.2f}) | "
+                f"{r['psf'] or '-'} | {noise} | {r['snr']:.0f} | {sig} |")  # fmt: skip
+        if "error" in r["fit"]:
+            lines.append(head + f" error: {r['fit']['error']} |" + "|" * 11 + f"{r['wall']:.1f} |")
+            continue
+        f = r["fit"]
+        fitted = sky_direction(math.radians(f["source_lon_deg"]), math.radians(f["source_lat_deg"]))
+        e = dict(
+            r, offset=offset, pos=_angle_deg(fitted, s),
+            de=f["distance"] / r["d"] - 1, fe=f["fov_deg"] / r["fov"] - 1,
+            pulls=[
+                _pull(f["distance"], f["distance_err"], r["d"]),
+                _pull(f["fov_deg"], f["fov_deg_err"], r["fov"]),
+                _pull(f["source_lon_deg"], f["source_lon_deg_err"], r["lon"]),
+                _pull(f["source_lat_deg"], f["source_lat_deg_err"], r["lat"]),
+            ],
+        )  # fmt: skip
+        done.append(e)
+        flag = " (degenerate)" if f["degenerate"] else ("" if f["converged"] else " (not conv.)")
+        p = e["pulls"]
+        lines.append(
+            head + f" {f['distance']:.4f} +- {f['distance_err']:.2g} | {e['de']:+.2e} | "
+            f"{p[0]:+.2f} | {f['fov_deg']:.4f} +- {f['fov_deg_err']:.2g} | {e['fe']:+.2e} | "
+            f"{p[1]:+.2f} | {f['source_lon_deg']:+.4f} +- {f['source_lon_deg_err']:.2g} | "
+            f"{p[2]:+.2f} | {f['source_lat_deg']:+.4f} +- {f['source_lat_deg_err']:.2g} | "
+            f"{p[3]:+.2f} | {e['pos']:.2g} | {f['num_steps']}{flag} | {r['wall']:.1f} |"
+        )
+    good = [e for e in done if e["fit"]["converged"] and not e["fit"]["degenerate"]]
+    lines += ["", f"{len(done)} of {len(rows)} fits returned a result; {len(good)} converged "
+              "and were not flagged degenerate."]  # fmt: skip
+    if good:
+        worst_d = max(abs(e["de"]) for e in good)
+        worst_f = max(abs(e["fe"]) for e in good)
+        worst_pos = max(good, key=lambda e: e["pos"])
+        worst_frac = max(good, key=lambda e: e["pos"] / e["offset"])
+        meet = sum(e["pos"] <= max(0.05, 0.03 * e["offset"]) for e in good)
+        pulls = np.array([e["pulls"] for e in good])
+        fin = pulls[np.isfinite(pulls)]
+        rms = ", ".join(
+            f"{n} {np.sqrt(np.nanmean(pulls[:, i] ** 2)):.2f}"
+            for i, n in enumerate(("D", "FOV", "lon", "lat"))
+        )
+        lines += [
+            f"- Largest relative error of those: D **{worst_d:.2e}**, FOV **{worst_f:.2e}** "
+            "(goal: 1e-2 each).",
+            f"- Source position: largest error **{worst_pos['pos']:.3f} deg** (offset "
+            f"{worst_pos['offset']:.2f} deg); largest as a share of the offset **"
+            f"{worst_frac['pos'] / worst_frac['offset'] * 100:.1f} %** ({worst_frac['pos']:.3f} "
+            f"of {worst_frac['offset']:.2f} deg); within the goal (0.05 deg or 3 % of the "
+            f"offset, whichever is larger) in {meet} of {len(good)}.",
+            f"- Their pulls: rms {np.sqrt(np.mean(fin**2)):.2f} over all {fin.size} ({rms}; 1 if "
+            f"the reported errors are honest and the two renderers agree); |pull| <= 2 in "
+            f"{np.mean(np.abs(fin) <= 2) * 100:.0f} % of them.",
+        ]
+    for e in done:
+        if e in good:
+            continue
+        lines.append(
+            f"- Flagged: D = {e['d']:g}, FOV {e['fov']:g} deg, {e['w']}x{e['h']}, star at "
+            f"({e['lon']:g}, {e['lat']:g}) deg, floor {e['floor']:g}, sigma "
+            f"{'given' if e['given'] else 'fitted'}: D off by {e['de']:+.2e}, FOV by "
+            f"{e['fe']:+.2e}, position by {e['pos']:.3f} deg; "
+            f"{'converged' if e['fit']['converged'] else 'not converged'}; "
+            f"message: {e['fit']['message']}"
+        )
+    lines.append(_walls_line([r["wall"] for r in rows], "well under 60 s"))
+    return lines
 
 
 if __name__ == "__main__":
