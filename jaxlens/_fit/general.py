@@ -324,7 +324,8 @@ def fit(
         # The hole's image and the source: the arcs' centre, azimuth and radii.
         arcs = find_arcs(masked)
         found = arcs.score > 10.0
-        if found and arcs.offset > max(1.0, 0.5 * arcs.ring_width):
+        arc_like = found and arcs.offset > max(1.0, 0.5 * arcs.ring_width)
+        if arc_like:
             # Arcs, not a ring: the radial profile about the image centre mixes the two
             # arcs' radii, so the ring start takes the arcs' Einstein radius and width.
             r, wr = arcs.ring_radius, arcs.ring_width
@@ -352,6 +353,11 @@ def fit(
             ring_init = None
             if "distance" in init and "fov" in init:
                 ring_init = {n: init[n] for n in ("distance", "fov", "sigma") if n in init}
+            elif arc_like and math.isfinite(arcs.shadow_radius):
+                # Arcs around a visible shadow: the ratio of their Einstein radius to
+                # the shadow's fixes D (a centred ring's candidates can fit arcs at the
+                # wrong distance: D 3.0, FOV 143 deg for D 20, FOV 60 deg).
+                ring_init = _starts.distance_from_radii(arcs.ring_radius, arcs.shadow_radius, w)
             d_s, fov_s, sig_s, a_s, fl_s, *_ = _starts.ring_start(gray, prof, sig, ring_init, scale)
             guess = {"distance": d_s, "fov": fov_s, "sigma": sig_s, "brightness": a_s,
                      "floor": fl_s}  # fmt: skip
@@ -362,7 +368,6 @@ def fit(
                              if n in free and (n not in init or n in refined)}  # fmt: skip
         else:
             start |= init
-        arc_like = found and arcs.offset > max(1.0, 0.5 * arcs.ring_width)
         if arc_like:
             # The ring start's brightness and floor are the ring's azimuthal mean.
             start |= {n: v for n, v in (("brightness", arcs.amplitude), ("floor", arcs.floor))

@@ -250,6 +250,22 @@ def _from_init(init, prof: _Profile, width: int, sigma):
     return np.asarray(out, float)
 
 
+def distance_from_radii(ring_px: float, shadow_px: float, width: int):
+    """Starting `{"distance", "fov"}` from the Einstein ring's and the shadow's radii in
+    pixels (a camera pointed at the hole): their ratio $\tan\alpha_E / \tan\alpha_{sh}$
+    depends on D alone (it grows as ~0.54 sqrt(D)), and the ring's radius then fixes the
+    focal length. `None` when the ratio lies outside the table ($D$ 1.9 ... 1e5)."""
+    d, a_e, sh, _ = _ring_table()
+    ratio = np.tan(a_e) / np.tan(sh)
+    q = ring_px / shadow_px
+    if not (math.isfinite(q) and ratio.min() < q < ratio.max()):
+        return None
+    order = np.argsort(ratio)
+    ld = float(np.interp(q, ratio[order], np.log(d)[order]))
+    a = float(np.interp(ld, np.log(d), a_e))
+    return {"distance": math.exp(ld), "fov": 2.0 * math.atan(0.5 * width * math.tan(a) / ring_px)}
+
+
 def ring_start(img, prof: _Profile, star_sigma, init, scale):
     """Starting values of an Einstein-ring fit: candidates along the exact ring relation
     (and from `init`), each refined on a binned image with D held, the best by loss.
