@@ -14,7 +14,7 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._exact import shadow_angle
 from .._scene import Scene
-from . import psf as _psf
+from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
@@ -218,6 +218,50 @@ def _source_start(img, valid, floor, ring_px):
     return math.atan2(s, c)
 
 
+def _arcs_candidates(arcs, width: int, blur_px: float = 0.0):
+    """Cameras along the exact ring relation that put the Einstein ring at the arcs'
+    radius: `(distance, fov, focal, sigma)` arrays (R_S, radians, pixels, radians),
+    sigma the star width the arcs' radial width implies (radial magnification 1/2 at
+    the Einstein ring, the blur `blur_px` and the pixel removed in quadrature)."""
+    d, a_e, _, _ = _starts._ring_table()
+    focal = arcs.ring_radius / np.tan(a_e)
+    fov = 2.0 * np.arctan(0.5 * width / focal)
+    ok = (fov > math.radians(0.05)) & (fov < math.radians(179.0))
+    intrinsic = math.sqrt(max(arcs.ring_width**2 - blur_px**2 - 1.0 / 12.0, 0.25))
+    return d[ok], fov[ok], focal[ok], 2.0 * intrinsic / focal[ok]
+
+
+def _arcs_camera(arcs, width: int, sigma: float):
+    """A first `{"distance", "fov", "sigma"}` for arcs with no shadow in view: the
+    camera whose ring relation and radial magnification give arcs of the measured
+    radius and width for a star of width `sigma` (radians); refined by
+    `_arcs_distance_scan` once the model is set up."""
+    d, fov, _, sig = _arcs_candidates(arcs, width)
+    i = int(np.argmin(np.abs(np.log(sig / sigma))))
+    return {"distance": float(d[i]), "fov": float(fov[i])}
+
+
+def _arcs_distance_scan(theta0, free, arcs, width, blur_px, args, prob):
+    """The internal parameters `theta0` with D, FOV, the source (and sigma, when free)
+    set to the candidate of `_arcs_candidates` whose full-model loss is lowest: the
+    source offset at each D from the arcs' radii, along their azimuth."""
+    d, fov, focal, sig = _arcs_candidates(arcs, width, blur_px)
+    beta = np.asarray(source_offset_from_arcs(arcs, d, focal), float)
+    ok = np.isfinite(beta)
+    values = {"distance": d, "fov": fov, "source_lon": beta * math.cos(arcs.psi),
+              "source_lat": beta * math.sin(arcs.psi), "sigma": sig}  # fmt: skip
+    best, best_loss = theta0, math.inf
+    for j in np.flatnonzero(ok):
+        cand = np.array(theta0, float)
+        for n, v in values.items():
+            if n in free:
+                cand[free.index(n)] = parameter(n).transform.inverse(float(v[j]))
+        loss = float(_loss(jnp.asarray(cand), args, prob))
+        if loss < best_loss:
+            best, best_loss = cand, loss
+    return best
+
+
 def fit(
     scene: Scene,
     image,
@@ -312,7 +356,6 @@ def fit(
 
     with jax.enable_x64(True):
         cam0 = scene.camera
-        from . import starts as _starts
         from .model import _samples_for
 
         span = float(np.max(img[valid]) - np.min(img[valid]))
@@ -348,9 +391,17 @@ def fit(
         # --- starting values from the image where init does not give them.
         scale = max(prof.peak + prof.floor, 1e-12)
         ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
-        if ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
+        ring_init = None
+        # Arcs with no shadow in view: nothing in the ring's profile fixes D (a centred
+        # ring's candidates fit the arcs' azimuthal mean: D 3300 for the benchmark's
+        # D 150 arcs), so D is chosen below by the full model along the ring relation.
+        scan_d = (arc_like and not math.isfinite(arcs.shadow_radius)
+                  and {"distance", "fov", "source_lon", "source_lat"} <= set(free)
+                  and not {"distance", "fov", "source_lon", "source_lat"} & set(init))  # fmt: skip
+        if scan_d:
+            start |= init | _arcs_camera(arcs, w, init.get("sigma", start["sigma"]))
+        elif ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
             sig = None if "sigma" in free else init.get("sigma", start["sigma"])
-            ring_init = None
             if "distance" in init and "fov" in init:
                 ring_init = {n: init[n] for n in ("distance", "fov", "sigma") if n in init}
             elif arc_like and math.isfinite(arcs.shadow_radius):
@@ -434,6 +485,12 @@ def fit(
         for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
             if name in free and name not in init and found:
                 theta0[free.index(name)] = math.atan(-c / f_px)  # the view turned away
+        if scan_d:
+            blur = float(psf) if psf_kind == "gaussian" else 0.0
+            theta0 = _arcs_distance_scan(theta0, free, arcs, w, blur, args, prob)
+            start |= {n: float(parameter(n).transform.forward(theta0[i]))
+                      for i, n in enumerate(free) if n in ("distance", "fov", "sigma")}  # fmt: skip
+            f_px = 0.5 * w / math.tan(0.5 * start["fov"])
         if {"source_lon", "source_lat"} <= set(free) and not ({"source_lon", "source_lat"}
                                                               & set(init)):  # fmt: skip
             if found:
