@@ -9,7 +9,7 @@ import numpy as np
 
 from . import _io
 from ._cli_render import add_scene_options, pixel_dtype, scene_dict
-from ._scene import ANIMATION_PATHS, ANIMATION_RANGES
+from ._schema import ANIMATION_PATHS, ANIMATION_RANGES
 
 FRAME_FORMATS = ("png", "jpg", "exr", "hdr")
 

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from . import _io
-from ._scene import DEFAULT_SKY, read_scene_file, validate
+from ._schema import DEFAULT_SKY
 
 SKY_CHOICES = "star | default | checker | panorama:PATH | plane:PATH"
 
@@ -81,6 +81,8 @@ def scene_dict(args) -> dict:
     _finite("--accuracy", args.accuracy, "a number in (0, 0.1) radians", lambda v: 0 < v < 0.1)
     if args.supersample is not None and not 1 <= args.supersample <= 64:
         raise ValueError(f"--supersample {args.supersample} is not valid: expected 1 to 64")
+
+    from ._scene import read_scene_file, validate  # imports JAX: not at parser build
 
     data = read_scene_file(args.scene) if args.scene else {}
     source = args.scene or "command line"

@@ -62,7 +62,15 @@ from . import _schema
 from ._camera import SAMPLINGS, Camera
 from ._disk import Disk
 from ._effects import AbstractMotion, Redshift
-from ._schema import Key, anything, greater, in_range
+from ._schema import (
+    ANIMATION_PATHS as ANIMATION_PATHS,
+    ANIMATION_RANGES as ANIMATION_RANGES,
+    DEFAULT_SKY as DEFAULT_SKY,
+    Key,
+    anything,
+    greater,
+    in_range,
+)
 from ._sky import AbstractSky
 from ._util import concrete
 
@@ -90,7 +98,6 @@ OUTPUT_KEYS = {
     "exposure": Key("float", 0.0, in_range(-1000.0, 1000.0), "a number in (-1000, 1000) (stops)"),
 }
 
-ANIMATION_PATHS = ("approach", "orbit", "pan", "zoom")
 ANIMATION_KEYS = {
     "path": Key("str", "approach", lambda v: v in ANIMATION_PATHS, " | ".join(ANIMATION_PATHS)),
     "frames": Key("int", 24, in_range(0, 10001), "a whole number from 1 to 10000"),
@@ -99,20 +106,10 @@ ANIMATION_KEYS = {
     "fps": Key("float", 12.0, in_range(0.0, 1000.0), "a number in (0, 1000) (frames a second)"),
 }
 
-# Defaults of start/stop for each animation path.
-ANIMATION_RANGES = {
-    "approach": (1e5, 3.0),
-    "orbit": (0.0, 360.0),
-    "pan": (-30.0, 30.0),
-    "zoom": (90.0, 10.0),
-}
-
 EFFECTS_KEYS = {
     "method": Key("str", "auto", lambda v: v in METHODS, " | ".join(METHODS)),
 }
 EFFECT_SECTIONS = {"motion": None, "redshift": "redshift", "disk": "thin"}  # default types
-
-DEFAULT_SKY = [{"type": "default"}, {"type": "star"}]
 
 
 def validate(data: dict, *, source: str = "scene") -> dict:

@@ -20,6 +20,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
+# Constants the command line's parser needs (kept here, free of JAX, so that building
+# the parser, and `jaxlens --help`, does not import it).
+ANIMATION_PATHS = ("approach", "orbit", "pan", "zoom")
+# Defaults of start/stop for each animation path.
+ANIMATION_RANGES = {
+    "approach": (1e5, 3.0),
+    "orbit": (0.0, 360.0),
+    "pan": (-30.0, 30.0),
+    "zoom": (90.0, 10.0),
+}
+DEFAULT_SKY = [{"type": "default"}, {"type": "star"}]
+
 
 class Key(NamedTuple):
     """One key of a table: `kind` (`"float"`, `"int"`, `"bool"`, `"str"`, `"color"`: a

@@ -45,8 +45,11 @@ def enable_x64():
 def _configure_cache():
     """Keep compiled programs between runs (XLA's persistent cache): the first run
     compiles for several seconds, later ones start at once. The folder is
-    `$JAXLENS_CACHE_DIR`, default `~/.cache/jaxlens/xla`; an empty value turns it off."""
+    `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it is
+    set; else `~/.cache/jaxlens/xla`. An empty value turns it off."""
     folder = os.environ.get("JAXLENS_CACHE_DIR")
+    if folder is None:
+        folder = os.environ.get("JAX_COMPILATION_CACHE_DIR")
     if folder is None:
         base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
         folder = str(Path(base) / "jaxlens" / "xla")
