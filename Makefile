@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test install install-test lint bench clean
+.PHONY: demo test test-slow install install-test lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,7 +28,11 @@ demo: install
 	$(BIN)/jaxlens render -o out/demo.png
 
 test: install-test
-	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake tests notebooks
+	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake -m "not benchmark" tests notebooks
+
+# The tests marked `benchmark` (each ~40 s or more; their cases are also benchmarked).
+test-slow: install-test
+	$(BIN)/python -m pytest -n 2 --dist loadfile -m benchmark tests
 
 lint: install-test
 	$(BIN)/ruff check jaxlens tests benchmarks

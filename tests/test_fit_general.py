@@ -65,6 +65,30 @@ def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys):
     assert abs(out["source_lat_deg"] - truth["lat_deg"]) < 0.05
 
 
+@pytest.mark.parametrize(
+    "d, fov_deg, lon_deg, lat_deg, sigma_deg, psf_px",
+    [
+        (12.0, 70.0, 3.0, -1.0, 1.0, 0.0),  # near the hole, wide, far off the axis
+        (60.0, 30.0, -0.5, 0.7, 0.5, 1.0),  # the ring cut by the frame
+        (150.0, 16.0, 0.4, 0.3, 0.5, 2.0),  # far, narrow, a wide PSF
+    ],
+)
+def test_recovery_across_distance_fov_offset_and_psf(d, fov_deg, lon_deg, lat_deg, sigma_deg,
+                                                     psf_px):  # fmt: skip
+    # Every parameter free but the PSF's width (given): D and FOV within 1 % and 4
+    # standard errors, the source within 0.05 deg or 3 % of its offset.
+    img = _arcs(d, fov_deg, lon_deg, lat_deg, sigma_deg, psf_px=psf_px)
+    img = img + np.random.default_rng(int(d)).normal(0.0, 0.01, img.shape)
+    fit = jl.fit(_model(), img, psf=psf_px or None)
+    assert fit.converged and not fit.degenerate, fit.message
+    for name, true in (("distance", d), ("fov", math.radians(fov_deg))):
+        err = abs(fit.values[name] - true)
+        assert err < 0.01 * true and err < 4.0 * fit.errors[name], (name, fit.summary())
+    lon, lat = (math.degrees(fit.values[n]) for n in ("source_lon", "source_lat"))
+    miss = math.hypot(lon - lon_deg, lat - lat_deg)
+    assert miss < max(0.05, 0.03 * math.hypot(lon_deg, lat_deg)), fit.summary()
+
+
 def test_poisson_counts_with_estimated_gain():
     # Counts = gain x value drawn from a Poisson law; the gain is estimated from the
     # image's mean-variance relation (within 25 %: 8 x 8 tiles of the flat sky), the
