@@ -37,6 +37,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _area, _disk, _effects
 from ._camera import view_angles
@@ -48,34 +49,45 @@ from ._trace import trace
 from ._weak import weak_field_escape_angle
 
 
+def _checks(scene, xp):
+    """Each check of a scene's values: `(where, bad, message)`, `where` the value's
+    path in the scene and `bad` where it fails (`xp`: `jnp` traced, `np` on the host)."""
+    cam = scene.camera
+    d, fov = xp.asarray(cam.distance), xp.asarray(cam.fov)
+    out = [
+        (lambda s: s.camera.distance, ~xp.isfinite(d) | ~(d > 1.0),
+         "camera distance must be finite and > 1 (units of R_S; the horizon is at 1)"),
+        (lambda s: s.camera.fov, ~xp.isfinite(fov) | ~(fov > 0.0) | ~(fov < xp.pi),
+         "field of view must be in (0, pi) radians, i.e. (0, 180) degrees"),
+    ]  # fmt: skip
+    if scene.motion is not None and not scene.motion.radial:
+        out.append((lambda s: s.camera.distance, ~(d > 1.5),
+                    "a circular orbit needs distance > 1.5 (units of R_S)"))  # fmt: skip
+    if scene.disk is not None:
+        r_in, r_out = xp.asarray(scene.disk.r_in), xp.asarray(scene.disk.r_out)
+        out.append((lambda s: s.disk.r_in, ~(r_in > 1.5) | ~(r_in < r_out) | ~xp.isfinite(r_out),
+                    "disk radii must satisfy 1.5 < r_in < r_out < inf (units of R_S)"))  # fmt: skip
+    return out
+
+
 def checked(scene):
     """`scene` with its values checked where they are used: `eqx.error_if` on the
     camera distance ($D > 1$, finite), the field of view ($0 <$ FOV $< \\pi$), a
     circular orbit's distance ($D > 1.5$) and the disk radii ($1.5 < r_{in} < r_{out}$,
     finite); a bad traced value raises at run time under `jit`, never a NaN image."""
-    cam = scene.camera
-    d = eqx.error_if(
-        cam.distance,
-        ~jnp.isfinite(cam.distance) | ~(cam.distance > 1.0),
-        "camera distance must be finite and > 1 (units of R_S; the horizon is at 1)",
-    )
-    fov = eqx.error_if(
-        cam.fov,
-        ~jnp.isfinite(cam.fov) | ~(cam.fov > 0.0) | ~(cam.fov < jnp.pi),
-        "field of view must be in (0, pi) radians, i.e. (0, 180) degrees",
-    )
-    if scene.motion is not None and not scene.motion.radial:
-        d = eqx.error_if(d, ~(d > 1.5), "a circular orbit needs distance > 1.5 (units of R_S)")
-    scene = eqx.tree_at(lambda s: (s.camera.distance, s.camera.fov), scene, (d, fov))
-    if scene.disk is not None:
-        r_in, r_out = scene.disk.r_in, scene.disk.r_out
-        r_in = eqx.error_if(
-            r_in,
-            ~(r_in > 1.5) | ~(r_in < r_out) | ~jnp.isfinite(r_out),
-            "disk radii must satisfy 1.5 < r_in < r_out < inf (units of R_S)",
-        )
-        scene = eqx.tree_at(lambda s: s.disk.r_in, scene, r_in)
+    for where, bad, message in _checks(scene, jnp):
+        scene = eqx.tree_at(where, scene, eqx.error_if(where(scene), bad, message))
     return scene
+
+
+def verify(scene):
+    """The checks of `checked` on the host, for concrete values: `ValueError` with the
+    same message. A host driver (`render`) checks this way, so that its compiled blocks
+    carry no error callback, which would keep them out of JAX's persistent
+    compilation cache."""
+    for _, bad, message in _checks(scene, np):
+        if np.any(bad):
+            raise ValueError(message)
 
 
 def coverage(alpha, alpha_sh, width):
@@ -478,7 +490,7 @@ def cells(scene, plan, ray_map, x0, y0, side, k: int | None = None, *, reference
     return main, thin
 
 
-def _shade_cells(scene, plan, ray_map, row0, rows: int):
+def _shade_cells(scene, plan, ray_map, row0, rows: int, check: bool):
     cam = scene.camera
     dt = cam.dtype
     x0 = jnp.arange(cam.width, dtype=dt) - 0.5 * cam.width
@@ -487,24 +499,27 @@ def _shade_cells(scene, plan, ray_map, row0, rows: int):
         jnp.broadcast_to(x0[None, :], (rows, cam.width)),
         jnp.broadcast_to(y0[:, None], (rows, cam.width)),
     )
-    main, thin = cells(checked(scene), plan, ray_map, x0, y0, 1.0)
+    main, thin = cells(checked(scene) if check else scene, plan, ray_map, x0, y0, 1.0)
     return main + thin
 
 
-def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False):
+def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False, check: bool = True):
     """Linear radiance of pixel rows `row0 .. row0+rows` of one camera's image; with
     `pair` (symmetric plans only) also of their mirror rows `H-row0-rows .. H-row0`.
 
     **Arguments:** `scene` (one camera), `plan` (a `Plan`: the stages), `ray_map` (the
     `RayMap` of the camera's distance in the pixel dtype, for the table source; else
-    `None`), `row0` (first pixel row, may be traced), `rows` (static).
+    `None`), `row0` (first pixel row, may be traced), `rows` (static), `check`
+    (`checked` the scene's values in the program; `False` where the caller has
+    `verify`ed them on the host).
 
     **Returns:** `(rows, W, 3)`, or `(2 rows, W, 3)` with `pair` (the block, then its
     mirror rows, each top to bottom), in the camera's dtype; captured rays are 0.
     """
     if scene.camera.sampling == "gauss":
-        return _shade_cells(scene, plan, ray_map, row0, rows)
-    scene = checked(scene)
+        return _shade_cells(scene, plan, ray_map, row0, rows, check)
+    if check:
+        scene = checked(scene)
     cam = scene.camera
     k, w = cam.supersample, cam.width
     if plan.symmetric:
