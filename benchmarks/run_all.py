@@ -31,6 +31,7 @@ def main(argv=None):
             "bench_effects",
             "bench_fit",
             "bench_memory",
+            "latency",
         ),
         help="run only these benchmarks",
     )
@@ -44,6 +45,7 @@ def main(argv=None):
         "bench_fit": ["--cases", "3"] if args.quick else [],
         # a fresh process per case; --quick: 512 x 512, report to a temporary folder
         "bench_memory": ["--quick"] if args.quick else [],
+        "latency": ["--quick"] if args.quick else [],
     }
     failed = []
     for name, extra in plan.items():
