@@ -13,9 +13,15 @@ works through the test files, and the run ends on files of a few short tests. On
 order changes; every test runs as before.
 """
 
+import os
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
+# No persistent compilation cache: a test that runs the CLI in-process would otherwise
+# point its worker's JAX at ~/.cache/jaxlens/xla, and every later compile in that
+# worker would be written there (and the suite would depend on the cache's state).
+os.environ["JAXLENS_CACHE_DIR"] = ""
 
 
 def pytest_configure(config):
