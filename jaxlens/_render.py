@@ -25,6 +25,7 @@ from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
 from ._raymap import RayMap
 from ._scene import Scene
 from ._sky import AbstractSky
+from ._trace import TABLE_ITERATIONS
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -50,9 +51,9 @@ def _map_dtype(dtype):
 
 @eqx.filter_jit
 def _build_map(distance, accuracy):
-    # One compiled table builder for every distance of an accuracy; R_F to 6
-    # duplication steps (3e-14 rad), as `trace`'s table: 8 add compile time only.
-    return RayMap.build(distance, accuracy=accuracy, iterations=6)
+    # One compiled table builder for every distance of an accuracy, with the R_F
+    # duplication steps of `trace`'s table (3e-14 rad; more add compile time only).
+    return RayMap.build(distance, accuracy=accuracy, iterations=TABLE_ITERATIONS)
 
 
 def ray_maps(distances, accuracy: float, dtype) -> RayMap:

@@ -220,7 +220,7 @@ class Table(AbstractMethod):
         distance = distance + 0.0 * jnp.ravel(alpha)[0]
         ray_map = RayMap.build(
             distance, accuracy=self.accuracy, max_windings=max_windings, captured=True,
-            iterations=_TABLE_ITERATIONS,
+            iterations=TABLE_ITERATIONS,
         )  # fmt: skip
         return ray_map(alpha)
 
@@ -228,7 +228,7 @@ class Table(AbstractMethod):
 # Duplication steps of R_F at the table's knots: 6 (3e-14 rad) compiles in 3.7 s
 # where 8 took 4.5 s (100,000 rays), with the accuracy ladder's table errors unchanged
 # to 3 digits; difference slopes would compile in 1.8 s but move them by up to 12 %.
-_TABLE_ITERATIONS = 6
+TABLE_ITERATIONS = 6
 
 _MIN_BUCKET = 1024
 
@@ -353,16 +353,16 @@ def trace(
         raise ValueError(f"max_windings={max_windings!r} must be > 0")
     distance = _check_distance(distance)
     dtype = jnp.result_type(float, alpha, distance)
-    alpha_in, alpha = alpha, jnp.asarray(alpha, dtype)
+    traced = isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer)
     distance = jnp.asarray(distance, dtype)
     if isinstance(method, str):
-        if method == "auto" and distance.ndim == 0 and alpha.size >= _TABLE_MIN_RAYS:
+        if method == "auto" and distance.ndim == 0 and np.size(alpha) >= _TABLE_MIN_RAYS:
             method = "table"  # many rays, one camera: tabulate once, interpolate
         method = method_for(method, accuracy)
-    if isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer):
-        result = method(alpha, distance, max_windings)  # part of the caller's program
-    else:
-        result = _eager(method, alpha_in, distance, dtype, max_windings)
+    if traced:  # part of the caller's program
+        result = method(jnp.asarray(alpha, dtype), distance, max_windings)
+    else:  # host rays are padded on the host, not copied to the device first
+        result = _eager(method, alpha, distance, dtype, max_windings)
     if throw:
         phi = RayStatus.unresolved.error_if(result.phi, jnp.any(result.unresolved))
         result = eqx.tree_at(lambda r: r.phi, result, phi)
