@@ -100,6 +100,17 @@ def test_einstein_ring_angle_reference_values():
     assert np.isnan(float(einstein_ring_angle(1.7)))
 
 
+def test_stored_ring_table_is_the_computed_one():
+    # The fit's starting values read a stored table of the ring relation; recomputed
+    # from the escape tables it agrees to round-off (a changed closed form or table
+    # setting must regenerate it).
+    from jaxlens._fit import starts
+
+    stored, computed = starts._ring_table(), starts.compute_ring_table()
+    for s, c in zip(stored, computed, strict=True):
+        np.testing.assert_allclose(s, c, rtol=1e-12, atol=0.0)
+
+
 def test_einstein_ring_angle_gradient():
     # Implicit-function derivative against central differences (step 1e-4 D: the
     # truncation error ~1e-8 relative, the table's value noise ~1e-12 / 2e-3).

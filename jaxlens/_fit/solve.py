@@ -15,7 +15,6 @@ class _Setup(eqx.Module):
     block: int = eqx.field(static=True)
     k: int = eqx.field(static=True)
     knots: int = eqx.field(static=True)
-    fit_sigma: bool = eqx.field(static=True)
 
     @property
     def width(self) -> int:

@@ -16,10 +16,10 @@ from .solve import _Setup
 from .table import escape_table, solve_with_slope
 
 
-@functools.cache
-def _ring_table():
-    """$\\alpha_E$, $\\alpha_{sh}$ and $d\\Phi/d\\alpha$ at $\\alpha_E$ on a grid of camera
-    distances $1.9 \\dots 10^5$, for the starting values (numpy, once a process)."""
+def compute_ring_table():
+    """$D$, $\\alpha_E$, $\\alpha_{sh}$ and $d\\Phi/d\\alpha$ at $\\alpha_E$ on 49 camera
+    distances $1.9 \\dots 10^5$ (those whose ring lies inside 88 deg), computed: what
+    `ring_table_data` stores (numpy arrays; R_S, radians, radians, per radian)."""
     with jax.enable_x64(True):
         d = np.geomspace(1.9, 1e5, 49)
 
@@ -34,6 +34,14 @@ def _ring_table():
         a, sh, slope = (np.asarray(v) for v in one(jnp.asarray(d)))
     ok = np.isfinite(a) & (a < math.radians(88.0))
     return d[ok], a[ok], sh[ok], slope[ok]
+
+
+@functools.cache
+def _ring_table():
+    """The stored `compute_ring_table()` (`ring_table_data`), as numpy arrays."""
+    from . import ring_table_data as t
+
+    return tuple(np.asarray(v) for v in (t.DISTANCE, t.ALPHA_E, t.ALPHA_SH, t.SLOPE))
 
 
 _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each candidate
@@ -53,7 +61,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
 
     **Returns:** loss, fov, sigma, A and floor of each candidate.
     """
-    x0, y0, data, scale, clip = args
+    x0, y0, data, scale, clip, fit_sigma = args
     y = (data / scale).ravel()
     lo, hi, noise = clip[0], clip[1], clip[2]
     hwhm = math.sqrt(2.0 * math.log(2.0))
@@ -68,10 +76,10 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
             jnp.isnan(halves[0]), (jnp.pi - phi_out) / hwhm, 0.5 * (phi_in - phi_out) / hwhm
         )
         sigma = jnp.where(jnp.isnan(c[2]), jnp.clip(width, 1e-5, 0.5), c[2])
-        q0 = jnp.stack([jnp.log(focal), jnp.log(sigma)][: 2 if setup.fit_sigma else 1])
+        q0 = jnp.stack([jnp.log(focal), jnp.log(sigma)])
 
         def basis(q):
-            s_ = jnp.exp(q[1]) if setup.fit_sigma else sigma
+            s_ = jnp.exp(q[1])
             # The primary ring only: the relativistic rings (~1e-3 of the flux) do not
             # change which candidate is best, and leaving them out halves the compile.
             g, t, cov = _pixel_basis(
@@ -100,20 +108,26 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
             jg, (g, cov) = jax.jacfwd(basis, has_aux=True)(q)
             m = a * g + fl * cov
             res = y - clipped_mean(m, lo, hi, noise)
-            x = clipped_slope(m, lo, hi, noise)[:, None] * jnp.concatenate(
-                [g[:, None], cov[:, None], a * jg], axis=1
+            # sigma held: its column zero and a unit diagonal, so its step is 0 and the
+            # others' are those of the system without it.
+            held = jnp.asarray([0.0, 0.0, 0.0, 1.0], q.dtype) * (1.0 - fit_sigma)
+            x = (
+                clipped_slope(m, lo, hi, noise)[:, None]
+                * jnp.concatenate([g[:, None], cov[:, None], a * jg], axis=1)
+                * (1.0 - held)
             )
             mm = x.T @ x
-            delta = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), x.T @ res)
+            delta = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)) + jnp.diag(held),
+                                     x.T @ res)  # fmt: skip
             delta = jnp.nan_to_num(delta)
-            limit = jnp.asarray([0.05, 0.3][: q.shape[0]], q.dtype)
+            limit = jnp.asarray([0.05, 0.3], q.dtype)
             q = q + jnp.clip(delta[2:], -limit, limit)
             return (q, a + delta[0], fl + delta[1]), jnp.sum(res**2)
 
         (q, a, fl), rss = jax.lax.scan(step, (q0, a0, f0), None, length=_PROFILE_STEPS)
         f = jnp.exp(q[0])
         fov = 2.0 * jnp.arctan(setup.half_width / f)
-        s_ = jnp.exp(q[1]) if setup.fit_sigma else sigma
+        s_ = jnp.exp(q[1])
         loss = jnp.where(jnp.isfinite(rss[-1]), rss[-1], jnp.inf)
         return loss, fov, s_, a * scale, fl * scale
 
@@ -280,15 +294,16 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
     h, w = img.shape
     coarse = max(1, round(min(h, w) / 40))
     cimg = _bin(img, coarse)
-    k0 = _samples_for(prof.ring_width, coarse)
-    setup0 = _Setup(0.5 * w, coarse, k0, 1024, star_sigma is None)
+    k0 = _samples_for(prof.ring_width, coarse)  # sigma's step is an argument: one program
+    setup0 = _Setup(0.5 * w, coarse, k0, 1024)
     x0c, y0c = _pixel_edges(w, h, coarse, jnp.float64)
     # Stored values clipped at 0 (or 1) where the noise crossed them: the model is
     # then the expected clipped value, with the noise of one original pixel.
     lo, hi = _clipping(img)
     noise = _noise_clipped(img, prof, lo, hi)
     clip0 = jnp.asarray([lo, hi, noise]) / scale  # clipping acts per original pixel
-    args0 = (x0c, y0c, jnp.asarray(cimg), jnp.asarray(scale), clip0)
+    args0 = (x0c, y0c, jnp.asarray(cimg), jnp.asarray(scale), clip0,
+             jnp.asarray(float(star_sigma is None)))  # fmt: skip
     cands = _ring_candidates(prof, w, star_sigma)
     extra = np.full((3, 3), np.nan)
     extra[:, 1] = 1.0
