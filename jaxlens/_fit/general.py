@@ -14,11 +14,23 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._exact import shadow_angle
 from .._scene import Scene
+from .._sky import GaussianStar, Uniform
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
-from .params import apply, in_scene, parameter, split_name, star_of, values_of
+from .params import (
+    STAR,
+    _parts,
+    _suffix,
+    apply,
+    floor_of,
+    in_scene,
+    parameter,
+    split_name,
+    star_of,
+    values_of,
+)
 from .pixels import _grid_sets, _pixel_sets
 from .result import _result_name, _ring_verdict
 from .solve import dense_least_squares
@@ -45,11 +57,12 @@ _RING_FLUX_PRIOR = 1.0
 
 
 class _Problem(eqx.Module):
-    """Static description of one fit: the free parameters, the pixel grid and the
-    model's settings."""
+    """Static description of a family of fits: every parameter the scene's structure
+    offers (`names`), the bins' side and the model's settings. Which parameters are
+    free and the held values are arguments (`_Select`), so fits of one image size and
+    model share their compiled programs."""
 
-    free: tuple = eqx.field(static=True)
-    fixed: tuple = eqx.field(static=True)  # (name, value) of non-scene fixed extras
+    names: tuple = eqx.field(static=True)
     block: int = eqx.field(static=True)
     k: int = eqx.field(static=True)
     pad: int = eqx.field(static=True)
@@ -58,21 +71,62 @@ class _Problem(eqx.Module):
     knots: int = eqx.field(static=True)
 
 
-def _physical(theta, prob: _Problem):
-    free = {n: parameter(n).transform.forward(theta[i]) for i, n in enumerate(prob.free)}
-    return free | dict(prob.fixed)
+class _Select(eqx.Module):
+    """Which of `_Problem.names` are fitted and the values of the others: `index`
+    (int, one an entry of theta: its position in `names`), `free` (bool, one a
+    name), `internal` and `value` (one a name: the internal and the physical value;
+    the held ones are used as they are). Fits freeing as many parameters share a
+    program. (Padding theta with spare entries would share more, but each spare is
+    one more tangent of the Jacobian: a ring fit's step took 30 % longer with one.)"""
+
+    index: jax.Array
+    free: jax.Array
+    internal: jax.Array
+    value: jax.Array
 
 
-def _model(theta, scene, grid, otf, prob: _Problem):
+def _names(sky, psf_kind) -> tuple:
+    """Every parameter of a model with this sky and PSF, in a fixed order."""
+    names = ["distance", "fov", "yaw", "pitch"]
+    for i in range(1, len(_parts(sky, GaussianStar)) + 1):
+        names += [n + _suffix(i) for n in STAR]
+    if _parts(sky, Uniform):
+        names.append("floor")
+    if psf_kind == "gaussian":
+        names.append("psf_sigma")
+    return tuple(names) + ("ring_flux",)
+
+
+def _select(names, free, values) -> _Select:
+    """The `_Select` of the parameters `free` (physical `values` for every name)."""
+    return _Select(
+        jnp.asarray([names.index(n) for n in free], jnp.int32),
+        jnp.asarray([n in free for n in names]),
+        jnp.asarray([parameter(n).transform.inverse(values[n]) for n in names]),
+        jnp.asarray([float(values[n]) for n in names]),
+    )
+
+
+def _internal(theta, sel: _Select):
+    return sel.internal.at[sel.index].set(theta)
+
+
+def _physical(theta, sel: _Select, prob: _Problem):
+    u = _internal(theta, sel)
+    return {n: jnp.where(sel.free[i], parameter(n).transform.forward(u[i]), sel.value[i])
+            for i, n in enumerate(prob.names)}  # fmt: skip
+
+
+def _model(theta, scene, grid, otf, sel, prob: _Problem):
     """Grey model of the compared bins (before clipping), data units, one value a bin:
     the fine bins then the coarse blocks (one rule of order k for both), or with a PSF the regular
     grid of bins, rendered on a margin, blurred and cropped (row-major)."""
-    p = _physical(theta, prob)
+    p = _physical(theta, sel, prob)
     scene = apply(scene, {n: v for n, v in p.items() if in_scene(n)})
     table = escape_table(scene.camera.distance, knots=prob.knots)
     plan = _plan.plan(scene)
     refs = _kernel.ring_references(table, table.phi.dtype)
-    rf = p.get("ring_flux", 1.0)
+    rf = p["ring_flux"]
 
     def render(x0, y0, side):
         n = x0.size
@@ -104,9 +158,10 @@ def _residuals(theta, args, prob: _Problem):
 
 
 def _residuals_model(theta, args, prob: _Problem):
-    """The residuals (noise units; a last one for the ring-flux prior) and the model."""
-    scene, grid, otf, data, weight, clip, gain = args
-    m0 = m = _model(theta, scene, grid, otf, prob)
+    """The residuals (noise units; a last one for the ring-flux prior, 0 when the flux
+    is held) and the model."""
+    scene, grid, otf, data, weight, clip, gain, sel = args
+    m0 = m = _model(theta, scene, grid, otf, sel, prob)
     if prob.noise == "poisson":
         # Deviance residuals: their squares sum to twice the negative log-likelihood
         # of the counts (less its minimum), so least squares is the Poisson ML fit.
@@ -126,11 +181,9 @@ def _residuals_model(theta, args, prob: _Problem):
     else:
         m = clipped_mean(m, clip[0], clip[1], clip[2])
         r = weight * (m - data) / clip[3]
-    r = r.ravel()
-    if "ring_flux" in prob.free:
-        i = prob.free.index("ring_flux")
-        r = jnp.concatenate([r, (theta[i : i + 1] - 1.0) / _RING_FLUX_PRIOR])
-    return r, m0
+    i = prob.names.index("ring_flux")
+    prior = jnp.where(sel.free[i], (_internal(theta, sel)[i] - 1.0) / _RING_FLUX_PRIOR, 0.0)
+    return jnp.concatenate([r.ravel(), prior[None]]), m0
 
 
 @eqx.filter_jit
@@ -465,20 +518,24 @@ def fit(
                 pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // block)
             else:
                 pad = -(-(max(np.shape(psf)) // 2 + 1) // block)
+            pad = -(-pad // 4) * 4  # margins in steps of 4 bins: PSFs share programs
             x0, y0 = (np.asarray(v) for v in _pixel_edges(w, h, block, np.float64))
             xs = x0[0, 0] + block * np.arange(-pad, x0.shape[1] + pad)
             ys = y0[0, 0] - block * np.arange(-pad, y0.shape[0] + pad)
             grid = tuple(jnp.asarray(v) for v in np.meshgrid(xs, ys))
             if psf_kind == "image":
                 otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
-        extras = ("ring_flux", "psf_sigma") if psf_kind == "gaussian" else ("ring_flux",)
-        fixed = tuple((n, float(start[n])) for n in extras if n not in free)
-        prob = _Problem(free, fixed, block, k, pad, kind, psf_kind, int(knots))
-        weight = np.sqrt(count)
+        names = _names(model_scene.sky, psf_kind)
+        for n in free:
+            if n not in names:  # a floor the sky does not have: say so
+                floor_of(model_scene.sky)
+        given = values_of(model_scene) | {n: start[n] for n in ("psf_sigma", "ring_flux")}
+        sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
+        prob = _Problem(names, block, k, pad, kind, psf_kind, int(knots))
         # Clipping acts on each original pixel, with its own noise.
         clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
-        args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(weight), clip,
-                jnp.asarray(gain if gain is not None else 1.0))  # fmt: skip
+        args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(np.sqrt(count)), clip,
+                jnp.asarray(gain if gain is not None else 1.0), sel)  # fmt: skip
         theta0 = np.asarray([parameter(n).transform.inverse(start[n]) for n in free])
         # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
         # refined by a scan of the loss along their azimuth.
@@ -534,7 +591,7 @@ def fit(
                     refit = float(np.std((data - m_np)[inside] * np.sqrt(count[inside])))
                     noise_sigma = min(max(refit, 0.7 * noise_sigma), 1.5 * noise_sigma)
                     clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
-                    args = args[:5] + (clip, args[6])
+                    args = args[:5] + (clip,) + args[6:]
                 theta0 = np.asarray(theta)
         theta, r = np.asarray(theta), np.asarray(r).ravel()
         jac = np.asarray(jac).reshape(r.size, -1)
@@ -550,7 +607,7 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
             noise_sigma, gain, block, k, prob, t_start, sigma_known, pix, shadow_seen):  # fmt: skip
     from .fit_result import Fit
 
-    prior = 1 if "ring_flux" in free else 0
+    prior = 1  # the last residual: the ring-flux prior (0 when the flux is held)
     n_data = int((count > 0).sum())
     p = len(free)
     rss = float(np.sum(r[: r.size - prior] ** 2))
