@@ -14,23 +14,11 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._exact import shadow_angle
 from .._scene import Scene
-from .._sky import GaussianStar, Uniform
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
-from .params import (
-    STAR,
-    _parts,
-    _suffix,
-    apply,
-    floor_of,
-    in_scene,
-    parameter,
-    split_name,
-    star_of,
-    values_of,
-)
+from .params import apply, floor_of, in_scene, parameter, split_name, star_of, values_of
 from .pixels import _grid_sets, _pixel_sets
 from .result import _result_name, _ring_verdict
 from .solve import dense_least_squares
@@ -57,10 +45,11 @@ _RING_FLUX_PRIOR = 1.0
 
 
 class _Problem(eqx.Module):
-    """Static description of a family of fits: every parameter the scene's structure
-    offers (`names`), the bins' side and the model's settings. Which parameters are
-    free and the held values are arguments (`_Select`), so fits of one image size and
-    model share their compiled programs."""
+    """Static description of a family of fits: every parameter of the model (`names`:
+    the scene's, as `values_of` lists them, then `psf_sigma` with a Gaussian PSF and
+    `ring_flux`), the bins' side and the model's settings. Which parameters are free
+    and the held values are arguments (`_Select`), so fits of one image size and model
+    share their compiled programs."""
 
     names: tuple = eqx.field(static=True)
     block: int = eqx.field(static=True)
@@ -83,18 +72,6 @@ class _Select(eqx.Module):
     free: jax.Array
     internal: jax.Array
     value: jax.Array
-
-
-def _names(sky, psf_kind) -> tuple:
-    """Every parameter of a model with this sky and PSF, in a fixed order."""
-    names = ["distance", "fov", "yaw", "pitch"]
-    for i in range(1, len(_parts(sky, GaussianStar)) + 1):
-        names += [n + _suffix(i) for n in STAR]
-    if _parts(sky, Uniform):
-        names.append("floor")
-    if psf_kind == "gaussian":
-        names.append("psf_sigma")
-    return tuple(names) + ("ring_flux",)
 
 
 def _select(names, free, values) -> _Select:
@@ -525,11 +502,14 @@ def fit(
             grid = tuple(jnp.asarray(v) for v in np.meshgrid(xs, ys))
             if psf_kind == "image":
                 otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
-        names = _names(model_scene.sky, psf_kind)
+        # Every parameter of the model: the scene's own, then the PSF's width and the
+        # rings' flux factor.
+        given = values_of(model_scene)
+        names = tuple(given) + ("psf_sigma",) * (psf_kind == "gaussian") + ("ring_flux",)
         for n in free:
             if n not in names:  # a floor the sky does not have: say so
                 floor_of(model_scene.sky)
-        given = values_of(model_scene) | {n: start[n] for n in ("psf_sigma", "ring_flux")}
+        given |= {n: start[n] for n in ("psf_sigma", "ring_flux")}
         sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
         prob = _Problem(names, block, k, pad, kind, psf_kind, int(knots))
         # Clipping acts on each original pixel, with its own noise.
