@@ -59,6 +59,10 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
     into the shadow): the Gaussian in $|\Phi - \pi|$ is at half its peak where
     $|\Phi - \pi| = \sqrt{2 \ln 2}\,\sigma$.
 
+    `args`: the binned image's left and top edges, its values, their scale, the
+    clipping `(lo, hi, noise)` and 1.0 to fit sigma (0.0: sigma held at the
+    candidate's; an argument, so both kinds of fit share this program).
+
     **Returns:** loss, fov, sigma, A and floor of each candidate.
     """
     x0, y0, data, scale, clip, fit_sigma = args
