@@ -95,6 +95,7 @@ def _markdown(files, tests, programs, wall, load, rc, argv):
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     from _common import machine_markdown
 
+    small = {name: t for name, t in programs.items() if max(t) < 0.5}
     total = collections.Counter()
     for row in files.values():
         total.update(row)
@@ -109,6 +110,11 @@ def _markdown(files, tests, programs, wall, load, rc, argv):
         f"Summed over the workers: {total['wall']:.0f} s in tests, of which XLA compile "
         f"{total['compile']:.0f} s, tracing {total['trace']:.0f} s, lowering "
         f"{total['lower']:.0f} s (notebooks: wall only, their kernels are other processes).",
+        "",
+        f"Programs whose every compile took under 0.5 s (mostly single operations run "
+        f"eagerly, compiled once a shape and dtype): {len(small)} programs, "
+        f"{sum(len(t) for t in small.values())} compiles, "
+        f"{sum(sum(t) for t in small.values()):.0f} s.",
         "",
         "| file | tests | wall s | compile s | tracing s | lowering s | rest s |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
