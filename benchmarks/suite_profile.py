@@ -92,7 +92,6 @@ def _record(files, tests, programs, wall, load, rc):
 
 
 def _markdown(files, tests, programs, wall, load, rc, argv):
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     from _common import machine_markdown
 
     small = {name: t for name, t in programs.items() if max(t) < 0.5}
@@ -109,7 +108,9 @@ def _markdown(files, tests, programs, wall, load, rc, argv):
         "",
         f"Summed over the workers: {total['wall']:.0f} s in tests, of which XLA compile "
         f"{total['compile']:.0f} s, tracing {total['trace']:.0f} s, lowering "
-        f"{total['lower']:.0f} s (notebooks: wall only, their kernels are other processes).",
+        f"{total['lower']:.0f} s (notebooks: wall only, their kernels are other processes). "
+        "The rest is the wall time less the three: running, and host work; it is negative "
+        "where a compile happens while a function is traced (both count that time).",
         "",
         f"Programs whose every compile took under 0.5 s (mostly single operations run "
         f"eagerly, compiled once a shape and dtype): {len(small)} programs, "
@@ -147,9 +148,9 @@ def _markdown(files, tests, programs, wall, load, rc, argv):
 
 
 def main(selection):
+    from _common import RESULTS  # benchmarks/, the script's folder, is on sys.path
+
     root = pathlib.Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(root / "benchmarks"))
-    from _common import RESULTS
 
     argv = ["-n", "2", "--dist", "loadfile", "--nbmake", "-m", "not benchmark", "-q"]
     argv += selection or ["tests", "notebooks"]
