@@ -88,17 +88,17 @@ def _internal(theta, sel: _Select):
     return sel.internal.at[sel.index].set(theta)
 
 
-def _physical(theta, sel: _Select, prob: _Problem):
-    u = _internal(theta, sel)
+def _physical(u, sel: _Select, prob: _Problem):
+    """Every parameter's physical value from the internal values `u` (`_internal`)."""
     return {n: jnp.where(sel.free[i], parameter(n).transform.forward(u[i]), sel.value[i])
             for i, n in enumerate(prob.names)}  # fmt: skip
 
 
-def _model(theta, scene, grid, otf, sel, prob: _Problem):
+def _model(p, scene, grid, otf, prob: _Problem):
     """Grey model of the compared bins (before clipping), data units, one value a bin:
     the fine bins then the coarse blocks (one rule of order k for both), or with a PSF the regular
-    grid of bins, rendered on a margin, blurred and cropped (row-major)."""
-    p = _physical(theta, sel, prob)
+    grid of bins, rendered on a margin, blurred and cropped (row-major); `p` the
+    physical value of every parameter (`_physical`)."""
     scene = apply(scene, {n: v for n, v in p.items() if in_scene(n)})
     table = escape_table(scene.camera.distance, knots=prob.knots)
     plan = _plan.plan(scene)
@@ -138,7 +138,8 @@ def _residuals_model(theta, args, prob: _Problem):
     """The residuals (noise units; a last one for the ring-flux prior, 0 when the flux
     is held) and the model."""
     scene, grid, otf, data, weight, clip, gain, sel = args
-    m0 = m = _model(theta, scene, grid, otf, sel, prob)
+    u = _internal(theta, sel)
+    m0 = m = _model(_physical(u, sel, prob), scene, grid, otf, prob)
     if prob.noise == "poisson":
         # Deviance residuals: their squares sum to twice the negative log-likelihood
         # of the counts (less its minimum), so least squares is the Poisson ML fit.
@@ -159,7 +160,7 @@ def _residuals_model(theta, args, prob: _Problem):
         m = clipped_mean(m, clip[0], clip[1], clip[2])
         r = weight * (m - data) / clip[3]
     i = prob.names.index("ring_flux")
-    prior = jnp.where(sel.free[i], (_internal(theta, sel)[i] - 1.0) / _RING_FLUX_PRIOR, 0.0)
+    prior = jnp.where(sel.free[i], (u[i] - 1.0) / _RING_FLUX_PRIOR, 0.0)
     return jnp.concatenate([r.ravel(), prior[None]]), m0
 
 
