@@ -26,6 +26,7 @@ from ._raymap import RayMap
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_ITERATIONS
+from ._util import is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -208,10 +209,20 @@ def render_array(
     **Returns:** linear radiance `(H, W, 3)` in the camera's dtype; captured rays 0.
     A bad traced value (distance <= 1, FOV outside (0, pi), disk radii) raises an
     error at run time rather than giving a NaN image.
+
+    Called eagerly (every value concrete), it checks the values on the host
+    (`ValueError`) and runs as one compiled program, kept for later calls with the
+    same kind of scene and the same sizes; under `jit`, `vmap` or `grad` it is part of
+    the caller's program.
     """
     from . import _plan
 
-    scene = _kernel.checked(as_scene(scene, sky, accuracy))
+    scene = as_scene(scene, sky, accuracy)
+    eager = is_concrete((scene, ray_map))
+    if eager:
+        _kernel.verify(scene)  # the same messages, as ValueError
+    else:
+        scene = _kernel.checked(scene)
     cam = scene.camera
     if cam.batch_shape != ():
         raise ValueError(
@@ -226,12 +237,28 @@ def render_array(
             "whole image: pass a plan of one block (jl.plan(scene, chunk_samples=...) large "
             "enough) or one with disk_rays=None"
         )
+    if eager:
+        # Called with concrete values: one compiled program, kept for the next call
+        # with the same kind of scene and sizes (op by op, a 96 x 80 image at k = 4
+        # took 11 s the first time and 0.5 s after; compiled, 5 s and 15 ms).
+        return _render_array_compiled(scene, p.kernel_key(), ray_map)
+    return _render_array(scene, p, ray_map, check=False)  # checked above
+
+
+def _render_array(scene, p: Plan, ray_map, check: bool):
+    cam = scene.camera
     if p.geometry == "table" and ray_map is None:
         ray_map = RayMap.build(cam.distance, accuracy=scene.accuracy)
     if ray_map is not None:
         ray_map = ray_map.astype(cam.dtype)
-    return _kernel.shade(scene, p, ray_map, 0, cam.height // 2 if p.pair else cam.height,
-                         p.pair)  # fmt: skip
+    rows = cam.height // 2 if p.pair else cam.height
+    return _kernel.shade(scene, p, ray_map, 0, rows, p.pair, check=check)
+
+
+@eqx.filter_jit
+def _render_array_compiled(scene, key: Plan, ray_map):
+    # The scene was `verify`ed on the host: no error callback in the program.
+    return _render_array(scene, key, ray_map, check=False)
 
 
 def sky_directions(camera: Camera, *, accuracy: float = 1e-8, dtype=None):
