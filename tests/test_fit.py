@@ -286,6 +286,7 @@ def test_start_30_percent_off(scale):
     assert abs(fit.distance / d - 1) < 0.01 and abs(fit.fov_deg / fov - 1) < 0.01
 
 
+@pytest.mark.benchmark  # ~45 s: 24 fits; the fit benchmark reports the pulls of its cases
 def test_uncertainties_cover_the_truth():
     """Pulls (fit - truth) / reported error over noise realisations: mean ~0, std ~1,
     ~68 % inside one standard error."""

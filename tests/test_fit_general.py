@@ -139,6 +139,7 @@ def test_bad_input_is_refused():
         jl.fit(_model(), np.full((16, 16), np.nan))
 
 
+@pytest.mark.benchmark  # ~60 s: 16 fits; the fit benchmark reports the pulls of its cases
 def test_errors_are_honest_over_noise_realisations():
     # The pulls (fit - truth) / error of D, FOV and the source's lon and lat over 16
     # noise realisations of one image: rms 1 if the reported errors are honest. The
