@@ -4,13 +4,14 @@ The float32 path is checked in tests/test_float32.py with float32 inputs, which 
 every computation in float32 with x64 enabled, so both precisions are exercised in one
 session.
 
-Under `pytest -n 2 --dist loadfile` (make test) the notebooks are queued first. xdist
-queues files by descending test count, which puts the notebooks (one item each, the
-longest items of the suite) last, and a worker with two or fewer pending tests takes
-the next file: one worker then ran all three notebooks at the end while the other sat
-idle (2 minutes of imbalance measured). Queued first, they run while the other worker
-works through the test files, and the run ends on files of a few short tests. Only the
-order changes; every test runs as before.
+Under `pytest -n 2 --dist loadfile` (make test) the files are queued longest first,
+by their wall time in the last suite profile (`benchmarks/results/suite.json`, written
+by `benchmarks/suite_profile.py`; files it does not list come last, by test count).
+xdist's own order (most tests first) put the notebooks and the fit files (few tests,
+the longest of the suite) last, and a worker with two or fewer pending tests takes the
+next file: one worker then ran them at the end while the other sat idle (2 minutes of
+imbalance measured). Longest first, the run ends on short files. Only the order
+changes; every test runs as before.
 """
 
 import os
@@ -32,15 +33,26 @@ def pytest_configure(config):
         config.option.loadscopereorder = False
 
 
+def _recorded_walls(root):
+    """Per-file wall seconds of the last suite profile (empty when it is missing)."""
+    import json
+    import pathlib
+
+    try:
+        data = json.loads(pathlib.Path(root, "benchmarks", "results", "suite.json").read_text())
+        return {name: float(row.get("wall", 0.0)) for name, row in data["files"].items()}
+    except (OSError, ValueError, KeyError, AttributeError):
+        return {}
+
+
 def pytest_collection_modifyitems(config, items):
     if not hasattr(config, "workerinput"):  # not an xdist worker: collection order
         return
     files = {}
     for item in items:
         files.setdefault(item.nodeid.split("::")[0], []).append(item)
-    # Notebooks first, then xdist's own order (most tests first); stable, so every
-    # worker collects the same order and a file's tests keep theirs.
-    order = sorted(
-        files.values(), key=lambda group: (not group[0].nodeid.endswith(".ipynb"), -len(group))
-    )
-    items[:] = [item for group in order for item in group]
+    walls = _recorded_walls(config.rootpath)
+    # Longest first; stable, so every worker collects the same order and a file's
+    # tests keep theirs.
+    order = sorted(files.items(), key=lambda kv: (-walls.get(kv[0], 0.0), -len(kv[1])))
+    items[:] = [item for _, group in order for item in group]
