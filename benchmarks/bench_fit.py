@@ -15,9 +15,10 @@ Two sections, one report:
 
 - **Rings** (`CASES`): a Gaussian star exactly behind the hole. Gaussian noise is added,
   the image clipped to [0, 1] and stored as an 8- or 16-bit grey PNG (linear values, no
-  sRGB transfer). The cases cover the issue's held-out range: D from 12 to 40, FOV from
-  40 to 90 deg, 8- and 16-bit PNGs, noise, with and without a floor, the star's width
-  given or fitted, images from 256 x 256 to 800 x 600.
+  sRGB transfer, tagged linear so that the fit reads them as stored). The cases cover
+  the issue's held-out range: D from 12 to 40, FOV from 40 to 90 deg, 8- and 16-bit
+  PNGs, noise, with and without a floor, the star's width given or fitted, images from
+  256 x 256 to 800 x 600.
 - **General cases** (`ARC_CASES`): a star off the axis at (lon, lat), 0.3 to 4.1 deg
   from it (lon > 0 right, lat > 0 up; a sample's ray leaves along n = -cos(Phi) f +
   sin(Phi) (cos(psi) e_x + sin(psi) e_y), psi its image azimuth), so two arcs; some with
@@ -222,6 +223,7 @@ def write_png(path, img, bits):
     q = np.clip(np.round(img * top), 0, top).astype(np.uint8 if bits == 8 else np.uint16)
     out = oiio.ImageOutput.create(str(path))
     spec = oiio.ImageSpec(q.shape[1], q.shape[0], 1, oiio.UINT8 if bits == 8 else oiio.UINT16)
+    spec.attribute("oiio:ColorSpace", "linear")  # gAMA 1.0: the fit reads it as stored
     assert out.open(str(path), spec) and out.write_image(np.ascontiguousarray(q[..., None]))
     out.close()
 

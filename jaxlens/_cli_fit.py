@@ -29,8 +29,10 @@ def register(sub):
         help="fit distance, field of view and source position to an image of a lensed star",
         description="Fit the camera distance (units of R_S), horizontal field of view and the "
         "star's position to an image of a lensed Gaussian star: a ring, or arcs from a star "
-        "off the axis (linear pixel values; integer formats read as stored, normalised to "
-        "[0, 1]; channels averaged; FITS through astropy, its WCS fixing the field of view).",
+        "off the axis (pixel values as linear intensity: 8/16-bit files tagged sRGB or "
+        "untagged, as PNG and JPEG are by default, decoded from sRGB; float files and files "
+        "tagged linear as stored; channels averaged; FITS through astropy, its WCS fixing "
+        "the field of view).",
     )
     p.add_argument("image", help="the image (PNG, EXR, TIFF, FITS, ...)")
     blur = p.add_mutually_exclusive_group()

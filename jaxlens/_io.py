@@ -43,13 +43,14 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
-def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+def srgb_decode(encoded: np.ndarray, dtype=np.float32) -> np.ndarray:
     """Inverse of `srgb_encode`: sRGB-encoded values in [0, 1] to linear. Plain NumPy.
 
-    **Returns:** linear values, float32, of the shape of `encoded`.
+    **Returns:** linear values in `dtype` (float32 unless given), of the shape of
+    `encoded`.
     """
-    x = np.asarray(encoded, np.float32)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+    x = np.asarray(encoded, dtype)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(dtype)
 
 
 def to_display(image: np.ndarray, *, exposure: float = 0.0) -> np.ndarray:
@@ -357,11 +358,22 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
     return data, info
 
 
+def transfer_of(info) -> str:
+    """How a file's stored values relate to linear light, from `read_pixels`' `info`:
+    `"srgb"` for 8- and 16-bit files tagged sRGB or untagged (the default of PNG and
+    JPEG; OpenImageIO reports both as sRGB), `"linear"` for float files and integer
+    files tagged linear (e.g. a PNG whose gAMA chunk is 1.0)."""
+    integer = info["format"].startswith(("uint", "int"))
+    space = info["space"]
+    return "srgb" if integer and ("srgb" in space or space == "") else "linear"
+
+
 def read_image(path) -> np.ndarray:
     """Read an image file (any format OpenImageIO reads) as linear float32.
 
-    8- and 16-bit files in sRGB (PNG, JPEG, ... as tagged by OpenImageIO) are decoded
-    to linear; float files (EXR, HDR, float TIFF) are taken as linear already. Alpha,
+    8- and 16-bit files in sRGB (PNG, JPEG, ... as tagged by OpenImageIO, and untagged
+    ones) are decoded to linear; float files (EXR, HDR, float TIFF) and integer files
+    tagged linear are taken as linear already (`transfer_of`). Alpha,
     where present, is kept as a channel, and the colour is returned multiplied by it
     (associated alpha, the convention of linear images and of `write_image`).
 
@@ -369,15 +381,9 @@ def read_image(path) -> np.ndarray:
     missing, not an image, truncated or otherwise unreadable.
     """
     data, info = read_pixels(path, unassociated_alpha=True)  # sRGB decoded before alpha
-    space, fmt, alpha, unassociated = (
-        info["space"],
-        info["format"],
-        info["alpha"],
-        info["unassociated"],
-    )
-    integer = fmt.startswith(("uint", "int"))
+    alpha, unassociated = info["alpha"], info["unassociated"]
     colour = [i for i in range(data.shape[-1]) if i != alpha][:3]
-    if integer and ("srgb" in space or space == ""):
+    if transfer_of(info) == "srgb":
         data[..., colour] = srgb_decode(data[..., colour])
     if 0 <= alpha < data.shape[-1] and unassociated:
         data[..., colour] *= data[..., alpha : alpha + 1]  # associated (premultiplied)

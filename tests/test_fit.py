@@ -61,8 +61,9 @@ def noisy(img, noise, seed):
 
 
 def write_png(path, img, bits, *, rgba=False):
-    """Linear values straight into an 8/16-bit PNG (no sRGB transfer), clipped to [0, 1];
-    `rgba`: as grey RGB with an opaque alpha channel. Returns the stored values."""
+    """Linear values straight into an 8/16-bit PNG tagged linear (gAMA 1.0, no sRGB
+    transfer), clipped to [0, 1]; `rgba`: as grey RGB with an opaque alpha channel.
+    Returns the stored values."""
     top = 255 if bits == 8 else 65535
     q = np.clip(np.round(np.asarray(img) * top), 0, top)[..., None]
     if rgba:
@@ -71,6 +72,7 @@ def write_png(path, img, bits, *, rgba=False):
     out = oiio.ImageOutput.create(str(path))
     fmt = oiio.UINT8 if bits == 8 else oiio.UINT16
     spec = oiio.ImageSpec(q.shape[1], q.shape[0], q.shape[2], fmt)
+    spec.attribute("oiio:ColorSpace", "linear")  # else PNG means sRGB
     if rgba:
         spec.alpha_channel = 3
     assert out.open(str(path), spec)
@@ -260,8 +262,8 @@ def test_recovery_on_rendered_rings(d, fov, sig, floor, given, noise):
 
 @pytest.mark.parametrize("bits", [8, 16])
 def test_png_round_trip(tmp_path, bits):
-    """Linear values stored in integer PNGs, noise clipped at 0 in the shadow: read as
-    stored (no sRGB decoding) and fitted with the clipped-noise model."""
+    """Linear values stored in integer PNGs tagged linear, noise clipped at 0 in the
+    shadow: read as stored and fitted with the clipped-noise model."""
     d, fov, sig = 20.0, 60.0, 1.5
     path = tmp_path / f"ring{bits}.png"
     stored = write_png(path, noisy(modelled(d, fov, sig, 0.1), 0.01, seed=bits), bits)
@@ -275,6 +277,27 @@ def test_png_round_trip(tmp_path, bits):
     rgba = tmp_path / "rgba.png"
     stored = write_png(rgba, modelled(d, fov, sig, 0.1), bits, rgba=True)
     np.testing.assert_allclose(read_observation(rgba), stored, atol=1e-6)
+
+
+def test_the_librarys_own_png_is_decoded_and_fits(tmp_path):
+    """`write_image` stores a PNG in sRGB (8 bits); the fit's reader decodes it to
+    linear, as `read_image` does (read as stored, the same ring gave D = 20.17 +- 0.015
+    for 20, FOV 59.74 deg and a floor of 0.32 for 0.1)."""
+    d, fov, sig = 20.0, 60.0, 1.5
+    linear = np.clip(noisy(modelled(d, fov, sig, 0.1), 0.01, seed=5), 0.0, 1.0)
+    path = tmp_path / "ring.png"
+    jl.write_image(path, np.repeat(linear[..., None], 3, axis=-1).astype(np.float32))
+    from jaxlens._fit.pixels import read_observation_transfer
+
+    got, transfer = read_observation_transfer(path)
+    assert transfer == "srgb"
+    # 8-bit sRGB steps: at most 0.5 / 255 of the encoded value, 0.0045 in linear at 1.
+    np.testing.assert_allclose(got, linear, atol=5e-3)
+    np.testing.assert_allclose(got, jl.read_image(path)[..., :3].mean(-1), atol=1e-6)
+    fit = fit_ring(path, star_sigma=math.radians(sig))
+    assert fit.converged and not fit.degenerate
+    assert abs(fit.distance - d) < 4 * fit.distance_err and abs(fit.fov_deg / fov - 1) < 0.01
+    assert abs(fit.floor - 0.1) < 0.01
 
 
 @pytest.mark.parametrize("scale", [1.3, 0.7])
@@ -395,7 +418,7 @@ def test_cli(tmp_path, capsys, monkeypatch):
     write_png(path, noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=16), 16)
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--mass", "10", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert out["converged"] is True
+    assert out["converged"] is True and out["transfer"] == "linear"
     assert out["distance"] == pytest.approx(20.0, rel=0.01)
     assert out["fov_deg"] == pytest.approx(60.0, rel=0.01)
     assert out["distance_m"] == pytest.approx(out["distance"] * 10 * 2953.25, rel=1e-6)

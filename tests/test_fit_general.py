@@ -58,6 +58,7 @@ def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys):
                 "converged", "degenerate", "message"):  # fmt: skip
         assert key in out, key
     assert out["converged"] and not out["degenerate"], out["message"]
+    assert out["transfer"] == "linear"  # a float file: as stored
     for name, true in (("distance", truth["d"]), ("fov_deg", truth["fov_deg"])):
         err = abs(out[name] - true)
         assert err < 0.01 * true and err < 4.0 * out[f"{name}_err"], (name, out[name])

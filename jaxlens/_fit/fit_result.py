@@ -39,6 +39,9 @@ class Fit:
       the multiple correlation of one with the other free parameters (NaN when D or
       FOV is held); above 1e9 the curvature is singular.
     - `seconds`: wall time, compile included.
+    - `transfer`: how a file's values were read: `"srgb"` (8/16-bit, tagged sRGB or
+      untagged: decoded to linear), `"linear"` (float files, files tagged linear,
+      FITS: as stored); `None` for an array.
     """
 
     scene: object
@@ -65,6 +68,7 @@ class Fit:
     degenerate: bool
     message: str
     seconds: float
+    transfer: str | None = None
 
     def __getattr__(self, name):
         # fit.distance, fit.distance_err, fit.fov_deg, ...
@@ -104,7 +108,7 @@ class Fit:
             noise=self.noise, noise_sigma=self.noise_sigma, gain=self.gain,
             chi2_dof=self.chi2_dof, n_pixels=self.n_pixels, block=self.block,
             supersample=self.supersample, result=self.result_name,
-            num_steps=self.num_steps, seconds=self.seconds,
+            num_steps=self.num_steps, seconds=self.seconds, transfer=self.transfer,
         )  # fmt: skip
         return out
 
@@ -124,6 +128,7 @@ class Fit:
         lines.append(
             f"{verdict}; chi2/dof {self.chi2_dof:.3g}; {self.n_pixels} pixels (bins of "
             f"{self.block}), k = {self.supersample}; {self.seconds:.1f} s"
+            + ("; file read as sRGB, decoded to linear" if self.transfer == "srgb" else "")
         )
         if self.message:
             lines.append(self.message)

@@ -1,6 +1,7 @@
 """`fit`: any parameter of a scene fitted to an image through the renderer's area-exact
 sampling, with a point-spread function, Gaussian or Poisson noise and a mask."""
 
+import dataclasses
 import math
 import time
 
@@ -176,28 +177,30 @@ _loss = eqx.filter_jit(lambda theta, args, prob: jnp.sum(_residuals(theta, args,
 
 
 def _load(image):
-    """`(img, fits)`: the image as float64 `(H, W)` (channels averaged, NaN kept) and the
-    `FitsImage` when it came from a FITS file (else `None`)."""
+    """`(img, fits, transfer)`: the image as float64 `(H, W)` (channels averaged, NaN
+    kept), the `FitsImage` when it came from a FITS file (else `None`) and how a file's
+    values were read (`read_observation_transfer`; `"linear"` for FITS, `None` for an
+    array)."""
     from pathlib import Path
 
-    from .pixels import read_observation
+    from .pixels import read_observation_transfer
 
-    fits = None
+    fits, transfer = None, None
     if isinstance(image, (str, Path)):
         if str(image).lower().endswith((".fits", ".fit", ".fts", ".fits.gz")):
             from .fits import read_fits
 
             fits = read_fits(image)
-            img = fits.data
+            img, transfer = fits.data, "linear"
         else:
-            img = read_observation(image)
+            img, transfer = read_observation_transfer(image)
     else:
         img = np.asarray(image, np.float64)
     if img.ndim == 3:
         img = img.mean(axis=-1)
     if img.ndim != 2 or min(img.shape) < 8:
         raise ValueError(f"image of shape {np.shape(img)} is not (H, W) or (H, W, C) of >= 8 px")
-    return np.asarray(img, np.float64), fits
+    return np.asarray(img, np.float64), fits, transfer
 
 
 def _read_mask(mask, shape):
@@ -328,8 +331,9 @@ def fit(
       `Uniform`. Its values are the starting point for what `init` and the image do
       not give.
     - `image`: array `(H, W)` / `(H, W, C)` of linear values (NaN: masked), or a path
-      (FITS through astropy: the WCS pixel scale fixes the FOV; other formats read as
-      stored, integer formats normalised to [0, 1]).
+      (FITS through astropy: the WCS pixel scale fixes the FOV; other formats by
+      `read_observation`: sRGB-tagged or untagged 8/16-bit files decoded to linear,
+      float and linear-tagged files as stored; `Fit.transfer` says which).
     - `free`: names of the parameters to fit: `distance`, `fov`, `yaw`, `pitch`,
       `source_lon`, `source_lat`, `sigma`, `brightness`, `floor`, `psf_sigma`,
       `ring_flux` (the thin rings' flux factor, with a prior N(1, 1), for images of
@@ -354,7 +358,7 @@ def fit(
     **Returns:** a `Fit`.
     """
     t_start = time.perf_counter()
-    img, fits = _load(image)
+    img, fits, transfer = _load(image)
     h, w = img.shape
     valid = np.isfinite(img) & ~_read_mask(mask, img.shape)
     if fits is not None:
@@ -579,9 +583,10 @@ def fit(
         model = np.asarray(model)
         phys = {n: float(parameter(n).transform.forward(theta[i])) for i, n in enumerate(free)}
         fitted = apply(model_scene, {n: v for n, v in phys.items() if in_scene(n)})
-    return _finish(fitted, free, phys, start, theta, r, jac, result, steps, model, data, count,
-                   kind, noise_sigma, gain, block, k, prob, t_start,
-                   sigma_known, pix, math.isfinite(prof.shadow_radius))  # fmt: skip
+    out = _finish(fitted, free, phys, start, theta, r, jac, result, steps, model, data, count,
+                  kind, noise_sigma, gain, block, k, prob, t_start,
+                  sigma_known, pix, math.isfinite(prof.shadow_radius))  # fmt: skip
+    return dataclasses.replace(out, transfer=transfer)
 
 
 def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data, count, kind,

@@ -7,25 +7,38 @@ from pathlib import Path
 import equinox as eqx
 import numpy as np
 
-from .._io import read_pixels
+from .._io import read_pixels, srgb_decode, transfer_of
 from .model import _pixel_edges
 
 
 def read_observation(path) -> np.ndarray:
-    """Read an image file as the observation model reads it: pixel values as stored
-    (integer formats normalised to [0, 1]), no colour-space decoding, the colour
-    channels averaged (an alpha channel, as OpenImageIO identifies it, is left out).
+    """Read an image file as the fit reads it: linear intensity, the colour channels
+    averaged (an alpha channel, as OpenImageIO identifies it, is left out).
 
-    `read_image` decodes sRGB-tagged 8/16-bit files (every PNG) to linear light; the
-    fit's contract takes the stored values as linear intensity, so it reads here.
+    The values are read as the file says they are stored (`transfer_of`, the rule of
+    `read_image`): 8- and 16-bit files tagged sRGB, or untagged (PNG's and JPEG's
+    default, and what `write_image` and `jaxlens render` write), are decoded from the
+    sRGB transfer to linear; float files (EXR, FITS, float TIFF) and integer files
+    tagged linear (a PNG with gAMA 1.0: OpenImageIO's `oiio:ColorSpace` "linear") are
+    taken as stored. Integer formats are normalised to [0, 1] first.
 
     **Returns:** float64 `(H, W)`; raises `ValueError` naming the file when it is
     missing, empty, not an image or unreadable.
     """
+    return read_observation_transfer(path)[0]
+
+
+def read_observation_transfer(path) -> tuple[np.ndarray, str]:
+    """`read_observation(path)` and the transfer it assumed (`"srgb"` decoded, or
+    `"linear"`)."""
     data, info = read_pixels(path)
     data, alpha = np.asarray(data, np.float64), info["alpha"]
     colour = [i for i in range(data.shape[-1]) if i != alpha] or [0]
-    return data[..., colour].mean(axis=-1)
+    transfer = transfer_of(info)
+    grey = data[..., colour]
+    if transfer == "srgb":
+        grey = srgb_decode(grey, np.float64)
+    return grey.mean(axis=-1), transfer
 
 
 def _as_gray(image) -> np.ndarray:

@@ -41,8 +41,9 @@ def fit_ring(
 
     **Arguments:**
     - `image`: array `(H, W)` or `(H, W, C)` of linear intensity (channels averaged),
-      or a path read with `read_observation` (values as stored, integer formats
-      normalised to [0, 1], no sRGB decoding, alpha left out).
+      or a path read with `read_observation` (linear intensity: sRGB-tagged or
+      untagged 8/16-bit files decoded, float and linear-tagged files as stored;
+      alpha left out).
     - `star_sigma`: the star's Gaussian width (radians) when known; fitted otherwise.
     - `init`: optional starting values, a dict with `distance` (R_S) and `fov`
       (radians) or `fov_deg`, optionally `sigma` (radians).
