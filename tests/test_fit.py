@@ -269,7 +269,7 @@ def test_png_round_trip(tmp_path, bits):
     stored = write_png(path, noisy(modelled(d, fov, sig, 0.1), 0.01, seed=bits), bits)
     np.testing.assert_allclose(read_observation(path), stored, atol=1e-6)
     fit = fit_ring(path, star_sigma=math.radians(sig))
-    assert fit.converged and not fit.degenerate
+    assert fit.converged and not fit.degenerate and fit.transfer == "linear"
     assert abs(fit.distance / d - 1) < 0.01 and abs(fit.fov_deg / fov - 1) < 0.01
     assert abs(fit.distance - d) < 4 * fit.distance_err
     assert fit.supersample == K
@@ -295,7 +295,7 @@ def test_the_librarys_own_png_is_decoded_and_fits(tmp_path):
     np.testing.assert_allclose(got, linear, atol=5e-3)
     np.testing.assert_allclose(got, jl.read_image(path)[..., :3].mean(-1), atol=1e-6)
     fit = fit_ring(path, star_sigma=math.radians(sig))
-    assert fit.converged and not fit.degenerate
+    assert fit.converged and not fit.degenerate and fit.transfer == "srgb"
     assert abs(fit.distance - d) < 4 * fit.distance_err and abs(fit.fov_deg / fov - 1) < 0.01
     assert abs(fit.floor - 0.1) < 0.01
 

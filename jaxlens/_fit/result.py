@@ -37,6 +37,8 @@ class RingFit(eqx.Module):
       the others (above 1e9: degenerate).
     - `message`: human-readable diagnosis ("" when all is well).
     - `seconds`: wall time of the fit, compile included.
+    - `transfer`: how a file's values were read (`read_observation`): `"srgb"` decoded
+      to linear, `"linear"` as stored; `None` for an array.
     """
 
     distance: float
@@ -67,6 +69,7 @@ class RingFit(eqx.Module):
     message: str
     seconds: float
     start: tuple
+    transfer: str | None = None
 
     @property
     def fov_deg(self) -> float:
@@ -142,7 +145,8 @@ class RingFit(eqx.Module):
             f"bin {self.block}, {self.supersample}x{self.supersample} samples)",
             f"solver        = {self.num_steps} steps, "
             + ("converged" if self.converged else "NOT converged")
-            + f", {self.seconds:.1f} s",
+            + f", {self.seconds:.1f} s"
+            + ("; file read as sRGB, decoded to linear" if self.transfer == "srgb" else ""),
         ]
         if self.degenerate:
             lines.append(f"DEGENERATE: {self.message}")
