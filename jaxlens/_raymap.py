@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
-from ._util import fusion_barrier
+from ._util import fusion_barrier, is_concrete
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -109,7 +109,7 @@ class RayMap(eqx.Module):
         settings = dict(knots=int(knots), max_windings=float(max_windings), captured=captured,
                         alpha_max=float(alpha_max), exact_slopes=exact_slopes,
                         iterations=int(iterations))  # fmt: skip
-        if isinstance(d, jax.core.Tracer):  # part of the caller's program
+        if not is_concrete(d):  # part of the caller's program
             return _tabulated(cls, d, **settings)
         # A concrete distance: one compiled program a setting, reused for every distance
         # (op by op, each later build took 0.45 s; compiled, 0.03 s). An eager jacfwd

@@ -41,9 +41,12 @@ def read_observation_transfer(path) -> tuple[np.ndarray, str]:
     return grey.mean(axis=-1), transfer
 
 
-def _as_gray(image) -> np.ndarray:
+def _as_gray(image) -> tuple[np.ndarray, str | None]:
+    """`(img, transfer)`: a ring fit's image as float64 `(H, W)`, checked, and how a
+    file's values were read (`read_observation_transfer`; `None` for an array)."""
+    transfer = None
     if isinstance(image, (str, Path)):
-        image = read_observation(image)
+        image, transfer = read_observation_transfer(image)
     img = np.asarray(image, dtype=np.float64)
     if img.ndim == 3:
         img = img.mean(axis=-1)
@@ -58,7 +61,7 @@ def _as_gray(image) -> np.ndarray:
         raise ValueError(
             f"image is blank (every pixel is {float(img.flat[0]):.6g}): no ring to fit"
         )
-    return img
+    return img, transfer
 
 
 def _bin(img, block):

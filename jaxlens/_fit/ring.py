@@ -1,13 +1,12 @@
 """`fit_ring`: the general fit's preset for an Einstein ring of a star behind the hole."""
 
 import math
-from pathlib import Path
 
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
 from .general import fit
-from .pixels import _as_gray, read_observation_transfer
+from .pixels import _as_gray
 from .result import RingFit
 from .starts import _profile
 
@@ -57,10 +56,7 @@ def fit_ring(
     **Returns:** a `RingFit`. Raises `ValueError` for an unreadable, non-finite or
     blank image, or one with no ring.
     """
-    transfer = None
-    if isinstance(image, (str, Path)):
-        image, transfer = read_observation_transfer(image)
-    img = _as_gray(image)
+    img, transfer = _as_gray(image)
     if star_sigma is not None and not (0 < star_sigma < math.pi):
         raise ValueError(f"star_sigma={star_sigma!r} must be in (0, pi) radians")
     prof = _profile(img)
