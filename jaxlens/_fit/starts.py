@@ -45,13 +45,16 @@ def _ring_table():
 
 
 _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each candidate
+# The candidates are first refined by one step each, and the best `_SHORTLIST` of those
+# by all `_PROFILE_STEPS`: half the model evaluations of refining all of them fully.
+_SHORTLIST = 8
 
 
 @eqx.filter_jit
-def _candidate_losses(cands, halves, args, setup: _Setup):
+def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     r"""Profile loss of each candidate distance.
 
-    For each (D, fov, sigma) the distance is held fixed while a few Gauss-Newton steps
+    For each (D, fov, sigma) the distance is held fixed while `steps` Gauss-Newton steps
     (A and floor linear, steps on log focal length and log sigma clipped) fit the rest:
     candidates along the ring relation then differ by what D alone changes, not by the
     sub-pixel error of the measured ring radius. A NaN sigma is first taken from the
@@ -61,9 +64,10 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
 
     `args`: the binned image's left and top edges, its values, their scale, the
     clipping `(lo, hi, noise)` and 1.0 to fit sigma (0.0: sigma held at the
-    candidate's; an argument, so both kinds of fit share this program).
+    candidate's; an argument, so both kinds of fit share this program). `steps` is an
+    argument too (one program for the short and the full refinement).
 
-    **Returns:** loss, fov, sigma, A and floor of each candidate.
+    **Returns:** loss (after the last step), fov, sigma, A and floor of each candidate.
     """
     x0, y0, data, scale, clip, fit_sigma = args
     y = (data / scale).ravel()
@@ -107,7 +111,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
         mm = xm.T @ xm
         a0, f0 = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), xm.T @ y)
 
-        def step(carry, _):
+        def step(_, carry):
             q, a, fl = carry
             jg, (g, cov) = jax.jacfwd(basis, has_aux=True)(q)
             m = a * g + fl * cov
@@ -126,13 +130,15 @@ def _candidate_losses(cands, halves, args, setup: _Setup):
             delta = jnp.nan_to_num(delta)
             limit = jnp.asarray([0.05, 0.3], q.dtype)
             q = q + jnp.clip(delta[2:], -limit, limit)
-            return (q, a + delta[0], fl + delta[1]), jnp.sum(res**2)
+            return q, a + delta[0], fl + delta[1]
 
-        (q, a, fl), rss = jax.lax.scan(step, (q0, a0, f0), None, length=_PROFILE_STEPS)
+        q, a, fl = jax.lax.fori_loop(0, steps, step, (q0, a0, f0))
+        g, (_, cov) = basis(q)
+        rss = jnp.sum((y - clipped_mean(a * g + fl * cov, lo, hi, noise)) ** 2)
         f = jnp.exp(q[0])
         fov = 2.0 * jnp.arctan(setup.half_width / f)
         s_ = jnp.exp(q[1])
-        loss = jnp.where(jnp.isfinite(rss[-1]), rss[-1], jnp.inf)
+        loss = jnp.where(jnp.isfinite(rss), rss, jnp.inf)
         return loss, fov, s_, a * scale, fl * scale
 
     def skip(c):  # rows with D = NaN are placeholders: not evaluated
@@ -323,9 +329,20 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
             f"from the centre of a {w}-pixel-wide image"
         )
     halves = jnp.asarray([prof.inner_half, prof.outer_half])
-    loss, fovs, sig, amp, flo = (
-        np.asarray(v) for v in _candidate_losses(jnp.asarray(cands), halves, args0, setup0)
-    )
+
+    def losses(c, steps):
+        out = _candidate_losses(jnp.asarray(c), halves, args0, setup0, jnp.asarray(steps))
+        return [np.asarray(v) for v in out]
+
+    # One step each, then the shortlist by all the steps (the other rows skipped: NaN D,
+    # the same shape, so the same program).
+    loss = losses(cands, 1)[0]
+    loss = np.where(np.isfinite(loss), loss, np.inf)
+    short = np.argsort(loss, kind="stable")[:_SHORTLIST]
+    short = short[np.isfinite(loss[short])]
+    cands = np.where(np.isin(np.arange(len(cands)), short)[:, None], cands,
+                     np.asarray([np.nan, 1.0, 1.0]))  # fmt: skip
+    loss, fovs, sig, amp, flo = losses(cands, _PROFILE_STEPS)
     loss = np.where(np.isfinite(loss), loss, np.inf)
     best = int(np.argmin(loss))
     d_s, fov_s, sig_s = float(cands[best][0]), float(fovs[best]), float(sig[best])
