@@ -31,7 +31,8 @@ class Fit:
       (`block` x `block` bins of the image; NaN where masked).
     - `n_pixels`, `block`, `supersample`: pixels compared, their binning, k.
     - `result`: the optimistix `RESULTS` of the solve, `result_name` its name,
-      `num_steps` its steps.
+      `num_steps` its steps (over both passes where the noise of a clipped image is
+      re-estimated between them).
     - `converged`: the solve succeeded, the curvature is finite and invertible, no
       parameter sits at a bound; `degenerate`: some parameters cannot be separated by
       the image (named in `message`); `message`: "" when all is well.

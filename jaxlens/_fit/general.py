@@ -554,8 +554,9 @@ def fit(
             atol = 1e-6
         clipped = math.isfinite(lo) or math.isfinite(hi)
         passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
+        steps = 0  # over the passes
         for _ in range(passes):
-            theta, r, jac, model, result, steps = _solve(
+            theta, r, jac, model, result, taken = _solve(
                 jnp.asarray(theta0),
                 args,
                 prob,
@@ -563,6 +564,7 @@ def fit(
                 jnp.asarray(atol),
                 int(max_steps),
             )
+            steps += int(taken)
             if passes == 2:
                 # The clipped model's noise, re-estimated from the residuals well inside
                 # (lo, hi), for the second pass (same program: the noise is an argument).
