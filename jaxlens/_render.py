@@ -11,6 +11,7 @@ disk get the same blocks, memory bound and progress as a bare scene.
 and `grad` with respect to any array field of the scene.
 """
 
+import contextlib
 import dataclasses
 
 import equinox as eqx
@@ -26,7 +27,7 @@ from ._raymap import RayMap
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_ITERATIONS
-from ._util import is_concrete
+from ._util import compile_ahead, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -95,6 +96,20 @@ def _maps_for(scene, plan, dtype):
     return ray_maps(scene.camera.distance, scene.accuracy, dtype)
 
 
+def _compile_ahead(scene, p: Plan, dtype):
+    """`compile_ahead` of the block program for placeholder ray maps of the right shapes
+    while the ray maps' own program compiles and runs (a null context without ray
+    maps: nothing to overlap)."""
+    if p.geometry != "table":
+        return contextlib.nullcontext()
+    fb, dt = p.frames, scene.camera.dtype
+    accuracy = float(scene.accuracy)
+    one = jax.eval_shape(lambda d: _build_map(d, accuracy), jnp.zeros((), _map_dtype(dtype)))
+    maps = jax.tree.map(lambda s: jnp.zeros((fb,) + s.shape, s.dtype), one).astype(dtype)
+    return compile_ahead(_block, frame(scene, slice(0, fb)), p.kernel_key(), maps,
+                         jnp.asarray(0, dt), p.rows, p.pair)  # fmt: skip
+
+
 def render(
     scene: Scene | Camera,
     sky: AbstractSky | None = None,
@@ -128,7 +143,9 @@ def render(
     single = scene.camera.batch_shape == ()
     scene, dtype = _prepare(scene, dtype)
     p = plan(scene, chunk_samples=chunk_samples)
-    out = _run(scene, p, _maps_for(scene, p, dtype), progress)
+    with _compile_ahead(scene, p, dtype):
+        maps = _maps_for(scene, p, dtype)
+    out = _run(scene, p, maps, progress)
     return out[0] if single else out
 
 

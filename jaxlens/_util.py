@@ -62,3 +62,40 @@ def fusion_barrier(tree, anchor):
         lambda t: jax.tree.map(jnp.zeros_like, t),
         tree,
     )
+
+
+class compile_ahead:
+    """Compile a jitted function (`jax.jit` or `eqx.filter_jit`) for `args` on a
+    background thread; `with compile_ahead(f, *args): ...` runs the block meanwhile and
+    waits for the compile at its end.
+
+    XLA compiles without holding the GIL, so a program the caller needs next compiles
+    while the current one compiles or runs (on a fresh process the two compiles overlap
+    instead of following each other); the later call `f(*args)` (same shapes, dtypes
+    and static values) finds it in `f`'s cache. A failed compile is left to that call
+    to report. The thread compiles under the caller's `jax_enable_x64` (a context sets
+    it for the calling thread only).
+    """
+
+    def __init__(self, f, *args):
+        from concurrent.futures import ThreadPoolExecutor
+
+        x64 = jax.config.read("jax_enable_x64")
+
+        def run():
+            with jax.enable_x64(x64):
+                f.lower(*args).compile()
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="jaxlens-compile")
+        self._future = pool.submit(run)
+        pool.shutdown(wait=False)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        try:
+            self._future.result()
+        except Exception:  # noqa: BLE001, S110 - the call itself compiles and reports it
+            pass
+        return False

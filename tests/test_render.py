@@ -207,6 +207,28 @@ def test_frames_are_one_batched_render():
         np.testing.assert_allclose(frames[i], single, atol=1e-7)
 
 
+def test_the_block_program_compiled_ahead_is_the_one_the_render_runs():
+    # render compiles its block program on a thread while the ray maps are built (the
+    # two compiles overlap); the render must then find it compiled: one compile of
+    # each program, not a second for the real ray maps.
+    compiled = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        cams = approach(Camera(20.0, math.radians(60.0), 14, 10, supersample=2), [30.0, 8.0])
+        frames = render_frames(cams, SKY)  # a size no other test renders
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert jl.plan(jl.Scene(cams, SKY)).geometry == "table"
+    assert compiled.count("jit(_block)") == 1, compiled
+    single = render(Camera(8.0, math.radians(60.0), 14, 10, supersample=2), SKY)
+    np.testing.assert_allclose(frames[1], single, atol=1e-7)
+
+
 # A small float32 scene rendered in many blocks by the memory and the progress tests:
 # one compiled block program for both.
 SMALL_SKY = GaussianStar(np.float32(0.02)) + Uniform(np.float32(0.1))

@@ -15,6 +15,7 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._exact import shadow_angle
 from .._scene import Scene
+from .._util import compile_ahead
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
@@ -522,48 +523,47 @@ def fit(
         args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(np.sqrt(count)), clip,
                 jnp.asarray(gain if gain is not None else 1.0), sel)  # fmt: skip
         theta0 = np.asarray([parameter(n).transform.inverse(start[n]) for n in free])
-        # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
-        # refined by a scan of the loss along their azimuth.
-        for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
-            if name in free and name not in init and found:
-                theta0[free.index(name)] = math.atan(-c / f_px)  # the view turned away
-        if scan_d:
-            blur = float(psf) if psf_kind == "gaussian" else 0.0
-            theta0 = _arcs_distance_scan(theta0, free, arcs, w, blur, args, prob)
-            start |= {n: float(parameter(n).transform.forward(theta0[i]))
-                      for i, n in enumerate(free) if n in ("distance", "fov", "sigma")}  # fmt: skip
-            f_px = 0.5 * w / math.tan(0.5 * start["fov"])
-        if {"source_lon", "source_lat"} <= set(free) and not ({"source_lon", "source_lat"}
-                                                              & set(init)):  # fmt: skip
-            if found:
-                psi = arcs.psi
-                beta = float(source_offset_from_arcs(arcs, start["distance"], f_px))
-            else:
-                psi = _source_start(gray, valid, start.get("floor", 0.0), prof.ring_radius)
-                beta = math.nan
-            offsets = [0.0] + list(np.geomspace(0.05, 6.0, 8) * math.pi / 180.0)
-            if math.isfinite(beta) and beta > 0:
-                offsets += list(beta * np.asarray([0.6, 0.8, 1.0, 1.25, 1.6]))
-            i_lon, i_lat = free.index("source_lon"), free.index("source_lat")
-            cands = np.repeat(theta0[None], len(offsets), axis=0)
-            cands[:, i_lon] = np.asarray(offsets) * math.cos(psi)
-            cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
-            losses = [float(_loss(jnp.asarray(c), args, prob)) for c in cands]
-            theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
         if atol is None:
             atol = 1e-6
+        solve_args = (args, prob, jnp.asarray(rtol), jnp.asarray(atol), int(max_steps))
+        # The solver's program (the largest) compiles on a thread while the starting
+        # values' scans below compile and run.
+        with compile_ahead(_solve, jnp.asarray(theta0), *solve_args):
+            # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
+            # refined by a scan of the loss along their azimuth.
+            for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
+                if name in free and name not in init and found:
+                    theta0[free.index(name)] = math.atan(-c / f_px)  # the view turned away
+            if scan_d:
+                blur = float(psf) if psf_kind == "gaussian" else 0.0
+                theta0 = _arcs_distance_scan(theta0, free, arcs, w, blur, args, prob)
+                start |= {n: float(parameter(n).transform.forward(theta0[i]))
+                          for i, n in enumerate(free)
+                          if n in ("distance", "fov", "sigma")}  # fmt: skip
+                f_px = 0.5 * w / math.tan(0.5 * start["fov"])
+            if {"source_lon", "source_lat"} <= set(free) and not ({"source_lon", "source_lat"}
+                                                                  & set(init)):  # fmt: skip
+                if found:
+                    psi = arcs.psi
+                    beta = float(source_offset_from_arcs(arcs, start["distance"], f_px))
+                else:
+                    psi = _source_start(gray, valid, start.get("floor", 0.0), prof.ring_radius)
+                    beta = math.nan
+                offsets = [0.0] + list(np.geomspace(0.05, 6.0, 8) * math.pi / 180.0)
+                if math.isfinite(beta) and beta > 0:
+                    offsets += list(beta * np.asarray([0.6, 0.8, 1.0, 1.25, 1.6]))
+                i_lon, i_lat = free.index("source_lon"), free.index("source_lat")
+                cands = np.repeat(theta0[None], len(offsets), axis=0)
+                cands[:, i_lon] = np.asarray(offsets) * math.cos(psi)
+                cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
+                losses = [float(_loss(jnp.asarray(c), args, prob)) for c in cands]
+                theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
         clipped = math.isfinite(lo) or math.isfinite(hi)
         passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
         steps = 0  # over the passes
         for _ in range(passes):
-            theta, r, jac, model, result, taken = _solve(
-                jnp.asarray(theta0),
-                args,
-                prob,
-                jnp.asarray(rtol),
-                jnp.asarray(atol),
-                int(max_steps),
-            )
+            theta, r, jac, model, result, taken = _solve(jnp.asarray(theta0), args,
+                                                          *solve_args[1:])  # fmt: skip
             steps += int(taken)
             if passes == 2:
                 # The clipped model's noise, re-estimated from the residuals well inside
