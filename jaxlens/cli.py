@@ -68,9 +68,12 @@ def _configure_cache():
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     parser = _Parser(
         prog="jaxlens", description="Gravitational lensing by a Schwarzschild black hole."
     )
+    parser.add_argument("--version", action="version", version=f"jaxlens {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name in _COMMANDS:
         importlib.import_module(name).register(sub)

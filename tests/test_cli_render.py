@@ -254,10 +254,22 @@ def test_animate_bad_input(tmp_path, capsys, extra, message):
     assert os.listdir(tmp_path) == []
 
 
+def test_version_and_python_dash_m(capsys):
+    import jaxlens
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxlens {jaxlens.__version__}"
+    p = subprocess.run([sys.executable, "-m", "jaxlens", "--version"], capture_output=True,
+                       text=True, timeout=60)  # fmt: skip
+    assert p.returncode == 0 and p.stdout.strip() == f"jaxlens {jaxlens.__version__}"
+
+
 def test_command_line_process_has_no_traceback(tmp_path):
     env = dict(os.environ, JAXLENS_CACHE_DIR="")
     p = subprocess.run(
-        [sys.executable, "-m", "jaxlens.cli", "render", "--distance", "0.9", "-o",
+        [sys.executable, "-m", "jaxlens", "render", "--distance", "0.9", "-o",
          str(tmp_path / "x.png")], capture_output=True, text=True, env=env, timeout=120,
     )  # fmt: skip
     assert p.returncode == 2

@@ -1,0 +1,7 @@
+"""`python -m jaxlens ...`: the `jaxlens` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())
