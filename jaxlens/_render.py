@@ -75,6 +75,10 @@ def _block(scene, plan, maps, row0, rows, pair):
         s = eqx.tree_at(lambda s: s.camera, scene, camera)
         return _kernel.shade(s, plan, m, row0, rows, pair, check=False)
 
+    if scene.camera.batch_shape == (1,):
+        # One frame (every still image): no batching pass over the kernel's trace.
+        camera, m = jax.tree.map(lambda a: a[0], (scene.camera, maps))
+        return one(camera, m)[None].astype(jnp.float32)
     return eqx.filter_vmap(one)(scene.camera, maps).astype(jnp.float32)
 
 
