@@ -86,7 +86,9 @@ def scene_dict(args) -> dict:
 
     data = read_scene_file(args.scene) if args.scene else {}
     source = args.scene or "command line"
-    cam = dict(data.get("camera", {})) if isinstance(data.get("camera", {}), dict) else {}
+    if any(not isinstance(data.get(t, {}), dict) for t in ("camera", "output", "animation")):
+        return validate(data, source=source)  # it says which must be a table
+    cam = dict(data.get("camera", {}))
     if not args.scene:
         w, h = _size(args._size_default)
         cam.update(width=w, height=h, supersample=args._supersample_default)
@@ -164,6 +166,7 @@ def run(args):
         kind = out.suffix[1:].upper()
         raise ValueError(f"output {str(out)!r}: {kind} files are animations; use `jaxlens animate`")
     v = scene_dict(args)
+    _io.check_render_memory(v["camera"]["width"], v["camera"]["height"])
     scene = jl.Scene.from_validated(v, dtype=pixel_dtype(args, v))
     t = time.perf_counter()
     img = jl.render(scene)

@@ -58,8 +58,52 @@ def to_display(image: np.ndarray, *, exposure: float = 0.0) -> np.ndarray:
 
     **Returns:** `uint8` array of the same shape.
     """
-    img = np.asarray(image, np.float32) * np.float32(2.0**exposure)
-    return np.round(srgb_encode(img) * 255.0).astype(np.uint8)
+    img = np.asarray(image)
+    out = np.empty(img.shape, np.uint8)
+    src, dst = img.reshape(-1), out.reshape(-1)  # views of contiguous arrays
+    scale = np.float32(2.0**exposure)
+    # In pieces of 2^20 values: the float temporaries of the transfer stay a few MB
+    # (whole-image temporaries held five float32 copies of an 8192 x 8192 render).
+    step = 1 << 20
+    for i in range(0, src.size, step):
+        piece = np.asarray(src[i : i + step], np.float32) * scale
+        dst[i : i + step] = np.round(srgb_encode(piece) * 255.0)
+    return out
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the system can give a process now (Linux `MemAvailable`; else
+    the physical memory), `None` where neither is known."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+# What a render needs besides its float32 output: the compiled block's workspace
+# (a few hundred MB, `block_memory`) and the 8-bit copy a PNG/JPEG/GIF is written from.
+RENDER_WORKSPACE = 512 << 20
+
+
+def check_render_memory(width: int, height: int, frames: int = 1) -> None:
+    """`ValueError` with the numbers when a render of `frames` images of `width` x
+    `height` pixels (float32 RGB, kept until written) and its 8-bit copy would not fit
+    in the memory available, before anything is allocated."""
+    need = frames * width * height * 3 * (4 + 1) + RENDER_WORKSPACE
+    have = available_memory()
+    if have is not None and need > have:
+        raise ValueError(
+            f"{frames} x {width} x {height} pixels need about {need / 2**30:.1f} GiB "
+            f"(float32 RGB and an 8-bit copy) and {have / 2**30:.1f} GiB is available: "
+            "render a smaller size or fewer frames"
+        )
 
 
 def check_output_path(path) -> Path:
@@ -187,6 +231,21 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     return path
 
 
+# GIF stores a frame's time as a 16-bit count of centiseconds: at most 655.35 s.
+GIF_MIN_FPS = 1.0 / 655.35
+VIDEO_FPS = (1e-3, 1000.0)
+
+
+def check_fps(fps, video: bool) -> None:
+    """`ValueError` unless `fps` (frames a second) is a rate the format can store: GIF from
+    1/655.35 (a frame's time is at most 655.35 s) to 1000, MP4 from 0.001 to 1000."""
+    lo, hi = VIDEO_FPS if video else (GIF_MIN_FPS, 1000.0)
+    if not lo <= fps <= hi:  # NaN too
+        kind = "an MP4" if video else "a GIF"
+        raise ValueError(f"fps={fps!r} is not valid for {kind}: expected a number in "
+                         f"[{lo:.4g}, {hi:g}] frames a second")  # fmt: skip
+
+
 def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: int = 0) -> Path:
     """Write an animated GIF of linear frames (Pillow), atomically.
 
@@ -203,8 +262,7 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
     frames = np.asarray(frames, np.float32)
     if frames.ndim != 4 or frames.shape[0] < 1 or frames.shape[-1] != 3:
         raise ValueError(f"frames of shape {frames.shape} are not (N, H, W, 3)")
-    if not fps > 0:
-        raise ValueError(f"fps={fps!r} must be > 0")
+    check_fps(fps, video=False)
     images = [Image.fromarray(to_display(f, exposure=exposure)).quantize(256) for f in frames]
     with atomic_output(path) as tmp:
         images[0].save(
@@ -273,8 +331,7 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
         raise ValueError(f"frames of dtype {frames.dtype} are not real numbers")
     if not math.isfinite(exposure):
         raise ValueError(f"exposure={exposure!r} must be finite (stops)")
-    if not 1e-3 <= fps <= 1000:  # NaN too
-        raise ValueError(f"fps={fps!r} must be a number in [0.001, 1000]")
+    check_fps(fps, video=True)
     av = _av()
     codec = _video_codec(av)
     n, h, w, _ = frames.shape
@@ -320,7 +377,7 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
     multiplied by alpha; asked for with `unassociated_alpha`).
 
     Raises `ValueError` naming the file when it is missing, empty, not an image,
-    truncated or otherwise unreadable.
+    truncated or otherwise unreadable, or too large for the memory available.
     """
     oiio = _oiio()
     path = Path(path)
@@ -337,6 +394,17 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
         raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
     try:
         spec = inp.spec()
+        # Refused before reading when its pixels and the copies its readers make (the
+        # float32 read, the linear decode, the fit's float64: ~24 bytes a value) would
+        # not fit: a small file can hold a huge image (a 1.5 MB PNG of 40000 x 40000).
+        need = 24 * spec.width * spec.height * spec.nchannels
+        have = available_memory()
+        if have is not None and need > have:
+            raise ValueError(
+                f"{str(path)!r} is {spec.width} x {spec.height} pixels x {spec.nchannels} "
+                f"channels: reading it needs about {need / 2**30:.1f} GiB and "
+                f"{have / 2**30:.1f} GiB is available"
+            )
         data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         err = inp.geterror()
         info = {

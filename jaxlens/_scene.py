@@ -95,7 +95,8 @@ CAMERA_KEYS = {
 }
 
 OUTPUT_KEYS = {
-    "exposure": Key("float", 0.0, in_range(-1000.0, 1000.0), "a number in (-1000, 1000) (stops)"),
+    # 2^100 keeps float32 pixels finite (2^128 is their largest power of two).
+    "exposure": Key("float", 0.0, in_range(-100.0, 100.0), "a number in (-100, 100) (stops)"),
 }
 
 ANIMATION_KEYS = {
@@ -186,11 +187,18 @@ def read_scene_file(path) -> dict:
         raise ValueError(f"scene file {str(path)!r} is not valid TOML: {e}") from None
     except UnicodeDecodeError:
         raise ValueError(f"scene file {str(path)!r} is not a UTF-8 text file") from None
+    except RecursionError:
+        raise ValueError(f"scene file {str(path)!r} nests its tables too deeply") from None
     layers = data.get("sky")
+    if isinstance(layers, dict):  # a single [sky] table: one layer
+        layers = data["sky"] = [layers]
     if isinstance(layers, list):
-        for layer in layers:
+        for i, layer in enumerate(layers):
             if isinstance(layer, dict):
-                layer["_base"] = str(path.parent)
+                if "_base" in layer:
+                    raise ValueError(f"scene file {str(path)!r}: [[sky]] #{i + 1} has an unknown "
+                                     "key '_base'")  # fmt: skip
+                layer["_base"] = str(path.parent)  # paths relative to the file's folder
     return data
 
 

@@ -65,6 +65,12 @@ def describe(value) -> str:
     return repr(value) if not isinstance(value, str) else f'"{value}"'
 
 
+# No number in a scene is larger in magnitude: radiances beyond it overflow float32
+# pixels once magnified or exposed, distances the float64 geometry (an all-NaN render
+# from D ~ 1e77).
+MAGNITUDE_MAX = 1e30
+
+
 def coerce(where: str, name: str, value, key: Key) -> Any:
     """Check the type and range of one value; return it in its Python type."""
     bad = ValueError(f"{where} {name} = {describe(value)} is not valid: expected {key.valid}")
@@ -78,6 +84,9 @@ def coerce(where: str, name: str, value, key: Key) -> Any:
             raise bad from None
         if not math.isfinite(v):
             raise bad
+        if abs(v) > MAGNITUDE_MAX:
+            raise ValueError(f"{where} {name} = {describe(value)} is not valid: expected "
+                             f"{key.valid}, at most {MAGNITUDE_MAX:g} in magnitude")  # fmt: skip
         return v
 
     kind = key.kind

@@ -106,11 +106,29 @@ def test_panorama_files_of_any_channel_count(tmp_path, capsys, channels, ext):
     assert Image.open(out).size == (16, 8)
 
 
+def test_a_single_sky_table_takes_paths_relative_to_its_file(tmp_path, capsys, monkeypatch):
+    # `[sky]` (one table) as well as `[[sky]]` (a list): the image path is the file's.
+    (tmp_path / "scenes").mkdir()
+    write_image(tmp_path / "scenes" / "p.exr", np.full((16, 32, 3), 0.25, np.float32))
+    scene = tmp_path / "scenes" / "one.toml"
+    scene.write_text('[camera]\nwidth = 16\nheight = 8\nsupersample = 1\n'
+                     '[sky]\ntype = "panorama"\npath = "p.exr"\n')  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run(["render", "scenes/one.toml", "-o", "o.exr"], capsys)
+    assert code == 0, err
+    assert read_image(tmp_path / "o.exr").max() == pytest.approx(0.25, rel=1e-6)
+
+
 def _bad_files(tmp_path):
     (tmp_path / "text.png").write_text("hello")
     good = write_image(tmp_path / "good.exr", np.ones((32, 64, 3), np.float32))
     (tmp_path / "cut.exr").write_bytes(good.read_bytes()[:200])
     (tmp_path / "bad.toml").write_text("[camera]\nfov = 60\n")
+    (tmp_path / "wide.toml").write_text('camera = "wide"\n')
+    (tmp_path / "five.toml").write_text("camera = 5\n")
+    (tmp_path / "output.toml").write_text("output = 5\n")
+    (tmp_path / "base.toml").write_text('[[sky]]\ntype = "star"\n_base = "/etc"\n')
+    (tmp_path / "deep.toml").write_text("a = " + "[" * 1000 + "]" * 1000 + "\n")
 
 
 BAD = [
@@ -134,6 +152,14 @@ BAD = [
     (["--sky", "plane:{tmp}/text.png"], "text.png' is not a readable image"),
     (["{tmp}/bad.toml"], "unknown key 'fov'"),
     (["{tmp}/none.toml"], "none.toml' does not exist"),
+    (["--distance", "1e35"], "at most 1e+30 in magnitude"),
+    (["--star-brightness", "1e300"], "at most 1e+30 in magnitude"),
+    (["--exposure", "150"], "a number in (-100, 100) (stops)"),
+    (["{tmp}/wide.toml"], '[camera] must be a table, got "wide"'),
+    (["{tmp}/five.toml", "--fov", "30"], "[camera] must be a table, got 5"),
+    (["{tmp}/output.toml", "--exposure", "1"], "[output] must be a table, got 5"),
+    (["{tmp}/base.toml"], "[[sky]] #1 has an unknown key '_base'"),
+    (["{tmp}/deep.toml"], "nests its tables too deeply"),
 ]
 
 
@@ -174,6 +200,17 @@ def test_usage_errors_are_one_line(capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--no-such-option" in err
+
+
+def test_outputs_larger_than_memory_are_refused_before_rendering(tmp_path, capsys, monkeypatch):
+    import jaxlens._io as io_
+
+    monkeypatch.setattr(io_, "available_memory", lambda: 64 << 20)  # 64 MiB
+    for cmd in (["render", "-o", str(tmp_path / "a.png")],
+                ["animate", "--frames", "3", "-o", str(tmp_path / "a.gif")]):  # fmt: skip
+        code, _, err = run([*cmd, "--size", "4000x3000"], capsys)
+        assert code == 2 and err.count("\n") == 1 and "4000 x 3000 pixels need about" in err
+    assert os.listdir(tmp_path) == []
 
 
 def test_interrupt_leaves_no_file(tmp_path, capsys, monkeypatch):
@@ -245,6 +282,7 @@ def test_animate_mp4_without_pyav_fails_before_rendering(tmp_path, capsys, monke
         (["--path", "approach", "--start", "0.5", "-o", "{tmp}/a.gif"], "--start 0.5"),
         (["--path", "zoom", "--stop", "200", "-o", "{tmp}/a.gif"], "--stop 200.0"),
         (["--frames", "0", "-o", "{tmp}/a.gif"], "--frames 0"),
+        (["--fps", "0.0001", "-o", "{tmp}/a.gif"], "fps=0.0001 is not valid for a GIF"),
     ],
 )
 def test_animate_bad_input(tmp_path, capsys, extra, message):

@@ -57,6 +57,33 @@ def test_png_gets_exposure_and_srgb(tmp_path):
     np.testing.assert_allclose(read_image(p), np.clip(img * 4.0, 0, 1), atol=0.5 / 255 * 2.4)
 
 
+def test_to_display_in_pieces_is_the_whole_image_transfer():
+    # to_display works through the image in pieces of 2^20 values (bounded temporaries);
+    # the result is the transfer applied to the whole image, across piece boundaries,
+    # for float64 input and for a non-contiguous view.
+    img = np.random.default_rng(1).random((700, 600, 3)) * 1.5 - 0.1  # 1.26e6 values
+    img[3, 4] = np.nan
+    for x in (img, img[:, ::2]):
+        want = np.round(srgb_encode(np.asarray(x, np.float32) * np.float32(0.5)) * 255.0)
+        got = to_display(x, exposure=-1.0)
+        assert got.dtype == np.uint8 and got.shape == x.shape
+        np.testing.assert_array_equal(got, want.astype(np.uint8))
+
+
+def test_images_too_large_for_memory_are_refused_before_reading(tmp_path, monkeypatch):
+    import jaxlens._io as io_
+
+    p = write_image(tmp_path / "a.png", _image(64, 64))
+    monkeypatch.setattr(io_, "available_memory", lambda: 100_000)  # bytes
+    with pytest.raises(ValueError, match=r"64 x 64 pixels x 3 channels: reading it needs"):
+        read_image(p)
+    with pytest.raises(ValueError, match=r"2 x 640 x 480 pixels need about"):
+        io_.check_render_memory(640, 480, frames=2)
+    monkeypatch.setattr(io_, "available_memory", lambda: None)  # unknown: not checked
+    io_.check_render_memory(640, 480, frames=2)
+    assert read_image(p).shape == (64, 64, 3)
+
+
 def test_jpeg_is_lossy_but_close(tmp_path):
     y, x = np.mgrid[0:32, 0:48] / 48.0
     img = np.stack([x, y, 0.5 * np.ones_like(x)], -1).astype(np.float32) * 0.8
