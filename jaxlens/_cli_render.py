@@ -1,6 +1,7 @@
 """`jaxlens render`: one image of a scene (a TOML file, command-line options, or both;
 options override the file)."""
 
+import argparse
 import math
 import time
 from pathlib import Path
@@ -39,9 +40,23 @@ def _finite(flag, value, valid, ok=lambda v: True):
         raise ValueError(f"{flag} {value!r} is not valid: expected {valid}")
 
 
+class _SceneKeys(argparse.Action):
+    """`--scene-keys`: print the scene-file schema and exit (like `--help`)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from ._scene import scene_keys_text  # imports the sky and effect modules
+
+        print(scene_keys_text())
+        parser.exit()
+
+
 def add_scene_options(p, *, size_default: str, supersample_default: int):
     """The options `render` and `animate` share (each overrides the scene file)."""
-    p.add_argument("scene", nargs="?", help="TOML scene file (see docs/rendering.md)")
+    p.add_argument("scene", nargs="?", help="TOML scene file (its tables and keys: "
+                   "--scene-keys)")  # fmt: skip
+    p.add_argument("--scene-keys", action=_SceneKeys, nargs=0,
+                   help="print every table and key a scene file takes, with defaults and "
+                   "valid values, and exit")  # fmt: skip
     p.add_argument("-o", "--output", required=True, help="output file")
     p.add_argument("--distance", type=float, help="camera distance, units of R_S (default 20)")
     p.add_argument("--fov", type=float, help="horizontal field of view, degrees (default 60)")

@@ -171,6 +171,44 @@ def validate(data: dict, *, source: str = "scene") -> dict:
     return out
 
 
+def scene_keys_text() -> str:
+    """Every table and key a scene file takes, with its default and what is valid (units
+    included), from the schema the files are checked against: `jaxlens render
+    --scene-keys` prints it."""
+
+    def toml(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, list):
+            return "[" + ", ".join(toml(x) for x in v) + "]"
+        return _schema.describe(v)
+
+    def keys(table: dict[str, Key]) -> list[str]:
+        out = []
+        for name, key in table.items():
+            if key.default is None:
+                out.append(f"  {name}    # {key.valid}")
+            else:
+                out.append(f"  {name} = {toml(key.default)}    # {key.valid}")
+        return out or ["  (no keys)"]
+
+    lines = ["# top level", *keys(TOP_KEYS)]
+    for name, table in (("camera", CAMERA_KEYS), ("output", OUTPUT_KEYS),
+                        ("animation", ANIMATION_KEYS)):  # fmt: skip
+        lines += ["", f"[{name}]", *keys(table)]
+    lines += ["", "[[sky]]    # layers, summed; none given: a default sky and a star"]
+    for kind in _schema.types("sky"):
+        lines += [f'  type = "{kind}"', *("  " + x for x in keys(_schema.keys("sky", kind)))]
+    lines += ["", "[effects]", *keys(EFFECTS_KEYS)]
+    for section, default in EFFECT_SECTIONS.items():
+        lines.append(f"[effects.{section}]" + (f'    # type = "{default}" if not given'
+                                                 if default else ""))  # fmt: skip
+        for kind in _schema.types(section):
+            lines += [f'  type = "{kind}"',
+                      *("  " + x for x in keys(_schema.keys(section, kind)))]  # fmt: skip
+    return "\n".join(lines)
+
+
 def read_scene_file(path) -> dict:
     """Parse a TOML scene file (no validation); paths inside are taken relative to
     the file's folder. Raises `ValueError` naming the file for unreadable files and

@@ -292,6 +292,22 @@ def test_animate_bad_input(tmp_path, capsys, extra, message):
     assert os.listdir(tmp_path) == []
 
 
+def test_scene_keys_lists_the_schema_and_help_names_no_file(capsys):
+    for command in ("render", "animate"):
+        with pytest.raises(SystemExit) as e:
+            cli.main([command, "--scene-keys"])
+        assert e.value.code == 0
+        out = capsys.readouterr().out
+        assert "[camera]\n  distance = 20.0    # a finite number > 1 (units of R_S)" in out
+        for kind in jl.scene_table_types("sky"):
+            assert f'  type = "{kind}"' in out
+        for section in ("motion", "redshift", "disk"):
+            assert f"[effects.{section}]" in out
+        with pytest.raises(SystemExit):
+            cli.main([command, "--help"])
+        assert "docs/" not in capsys.readouterr().out  # the wheel has no docs folder
+
+
 def test_version_and_python_dash_m(capsys):
     import jaxlens
 
