@@ -251,7 +251,10 @@ def write_report(rows, inproc, load, common):
         "Wall: the whole process, Python start-up included. Ratio: to `import jax` in the "
         "same run. The parts (seconds, medians) are measured inside the process: importing "
         "jax and jaxlens, JAX's tracing, lowering and XLA compilation (its own events), "
-        "retrieval from the persistent cache, and the rest (host work and running).",
+        "retrieval from the persistent cache, and the rest (host work and running). render "
+        "and fit compile their next program on a second thread while the first compiles or "
+        "runs, so the parts can add up to more than the process took: the rest (what is "
+        "left of the wall time) is then negative.",
         "",
         "| what | wall s | ratio | goal | " + " | ".join(PARTS) + " |",
         "|---|---|---|---|" + "---|" * len(PARTS),
