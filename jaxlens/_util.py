@@ -67,7 +67,7 @@ def fusion_barrier(tree, anchor):
 class compile_ahead:
     """Compile a jitted function (`jax.jit` or `eqx.filter_jit`) for `args` on a
     background thread; `with compile_ahead(f, *args): ...` runs the block meanwhile and
-    waits for the compile at its end.
+    waits for the compile at its end (not when the block raises).
 
     XLA compiles without holding the GIL, so a program the caller needs next compiles
     while the current one compiles or runs (on a fresh process the two compiles overlap
@@ -93,7 +93,9 @@ class compile_ahead:
     def __enter__(self):
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, kind, value, tb):
+        if kind is not None:  # the block failed (or Ctrl-C): no reason to wait
+            return False
         try:
             self._future.result()
         except Exception:  # noqa: BLE001, S110 - the call itself compiles and reports it
