@@ -354,6 +354,15 @@ def trace(
     distance = _check_distance(distance)
     dtype = jnp.result_type(float, alpha, distance)
     traced = isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer)
+    if not isinstance(distance, jax.core.Tracer):
+        rounded = np.asarray(distance, dtype)
+        if np.any(~(rounded > 1.0)):  # > 1 as given, the horizon in the working dtype
+            value = float(np.asarray(distance).flat[int(np.argmin(rounded > 1.0))])
+            raise ValueError(
+                f"distance={value!r} rounds to {float(rounded.min())!r} (the horizon) in "
+                f"{jnp.dtype(dtype).name}: pass float64 inputs with jax_enable_x64 on for a "
+                "camera this close"
+            )
     distance = jnp.asarray(distance, dtype)
     if isinstance(method, str):
         if method == "auto" and distance.ndim == 0 and np.size(alpha) >= _TABLE_MIN_RAYS:

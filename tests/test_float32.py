@@ -55,6 +55,17 @@ def test_no_nan_or_inf_anywhere(d):
     assert bool(jnp.all(jnp.isfinite(g)))
 
 
+def test_a_distance_that_rounds_to_the_horizon_is_refused():
+    # float32 rays and a Python float distance: the working dtype is float32, where
+    # 1 + 1e-9 is 1.0, the horizon; that is said, not computed at D = 1.
+    alpha = np.array([0.5, 2.0], np.float32)
+    with pytest.raises(ValueError, match=r"distance=1.000000001 rounds to 1.0 .* float32"):
+        jl.trace(alpha, 1 + 1e-9)
+    # In float64 it is a camera just outside the horizon: both rays fall in, resolved.
+    r = jl.trace(alpha.astype(np.float64), 1 + 1e-9)
+    assert np.all(np.asarray(r.captured)) and not np.any(np.asarray(r.unresolved))
+
+
 def test_float32_error_on_moderate_rays():
     alpha = np.linspace(0.05, 3.1, 500)
     r64 = jl.trace(alpha, 20.0, accuracy=1e-12)
