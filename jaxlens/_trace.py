@@ -287,8 +287,10 @@ def method_for(name: str, accuracy: float) -> AbstractMethod:
     )
 
 
-def _check_distance(distance):
-    """ValueError for a concrete bad distance; eqx.error_if under jit."""
+def _check_distance(distance, dtype=None):
+    """ValueError for a concrete bad distance, also one that is > 1 as given but rounds
+    to the horizon in `dtype` (the dtype the rays are traced in); eqx.error_if under
+    jit."""
     try:
         d = np.asarray(distance)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
@@ -300,6 +302,14 @@ def _check_distance(distance):
             raise ValueError(
                 f"distance={value!r} is not a valid camera radius: it must be "
                 "finite and > 1 (units of R_S, the horizon is at 1)"
+            )
+        rounded = d if dtype is None else d.astype(dtype)
+        if np.any(~(rounded > 1.0)):
+            i = int(np.argmin(rounded > 1.0))
+            raise ValueError(
+                f"distance={float(d.flat[i])!r} rounds to {float(rounded.flat[i])!r} (the "
+                f"horizon) in {jnp.dtype(dtype).name}: pass float64 inputs with "
+                "jax_enable_x64 on for a camera this close"
             )
         return distance
     return eqx.error_if(
@@ -351,18 +361,9 @@ def trace(
         raise ValueError(f"accuracy={accuracy!r} must be > 0 (radians)")
     if not max_windings > 0:
         raise ValueError(f"max_windings={max_windings!r} must be > 0")
-    distance = _check_distance(distance)
     dtype = jnp.result_type(float, alpha, distance)
+    distance = _check_distance(distance, dtype)
     traced = isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer)
-    if not isinstance(distance, jax.core.Tracer):
-        rounded = np.asarray(distance, dtype)
-        if np.any(~(rounded > 1.0)):  # > 1 as given, the horizon in the working dtype
-            value = float(np.asarray(distance).flat[int(np.argmin(rounded > 1.0))])
-            raise ValueError(
-                f"distance={value!r} rounds to {float(rounded.min())!r} (the horizon) in "
-                f"{jnp.dtype(dtype).name}: pass float64 inputs with jax_enable_x64 on for a "
-                "camera this close"
-            )
     distance = jnp.asarray(distance, dtype)
     if isinstance(method, str):
         if method == "auto" and distance.ndim == 0 and np.size(alpha) >= _TABLE_MIN_RAYS:
