@@ -77,8 +77,6 @@ def run(args):
         raise ValueError(f"--fps {args.fps!r} is not valid: expected a number in (0, 1000)")
     scene = scene_dict(args)
     anim = scene["animation"]
-    # Before rendering: the frame rate the file format can store.
-    _io.check_fps(anim["fps"] if args.fps is None else args.fps, video)
     kind = args.path or anim["path"]
     if args.path is not None and args.path != anim["path"]:
         anim["start"], anim["stop"] = ANIMATION_RANGES[kind]
@@ -86,6 +84,7 @@ def run(args):
     stop = anim["stop"] if args.stop is None else args.stop
     frames = anim["frames"] if args.frames is None else args.frames
     fps = anim["fps"] if args.fps is None else args.fps
+    _io.check_fps(fps, video)  # before rendering: a rate the file format can store
     _check(kind, start, stop)
     _io.check_render_memory(scene["camera"]["width"], scene["camera"]["height"], frames)
     frames_dir = Path(args.frames_dir) if args.frames_dir else out.with_name(out.stem + "_frames")

@@ -92,18 +92,23 @@ def available_memory() -> int | None:
 RENDER_WORKSPACE = 512 << 20
 
 
+def _check_memory(need: int, what: str, advice: str = "") -> None:
+    """`ValueError` "`what` about N GiB and M GiB is available`advice`" when `need`
+    bytes exceed `available_memory()` (not checked where that is unknown)."""
+    have = available_memory()
+    if have is not None and need > have:
+        raise ValueError(f"{what} about {need / 2**30:.1f} GiB and {have / 2**30:.1f} GiB is "
+                         f"available{advice}")  # fmt: skip
+
+
 def check_render_memory(width: int, height: int, frames: int = 1) -> None:
     """`ValueError` with the numbers when a render of `frames` images of `width` x
     `height` pixels (float32 RGB, kept until written) and its 8-bit copy would not fit
     in the memory available, before anything is allocated."""
-    need = frames * width * height * 3 * (4 + 1) + RENDER_WORKSPACE
-    have = available_memory()
-    if have is not None and need > have:
-        raise ValueError(
-            f"{frames} x {width} x {height} pixels need about {need / 2**30:.1f} GiB "
-            f"(float32 RGB and an 8-bit copy) and {have / 2**30:.1f} GiB is available: "
-            "render a smaller size or fewer frames"
-        )
+    _check_memory(frames * width * height * 3 * (4 + 1) + RENDER_WORKSPACE,
+                  f"{frames} x {width} x {height} pixels need",
+                  " (float32 RGB and an 8-bit copy): render a smaller size or fewer "
+                  "frames")  # fmt: skip
 
 
 def check_output_path(path) -> Path:
@@ -397,14 +402,9 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
         # Refused before reading when its pixels and the copies its readers make (the
         # float32 read, the linear decode, the fit's float64: ~24 bytes a value) would
         # not fit: a small file can hold a huge image (a 1.5 MB PNG of 40000 x 40000).
-        need = 24 * spec.width * spec.height * spec.nchannels
-        have = available_memory()
-        if have is not None and need > have:
-            raise ValueError(
-                f"{str(path)!r} is {spec.width} x {spec.height} pixels x {spec.nchannels} "
-                f"channels: reading it needs about {need / 2**30:.1f} GiB and "
-                f"{have / 2**30:.1f} GiB is available"
-            )
+        _check_memory(24 * spec.width * spec.height * spec.nchannels,
+                      f"{str(path)!r} is {spec.width} x {spec.height} pixels x "
+                      f"{spec.nchannels} channels: reading it needs")  # fmt: skip
         data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         err = inp.geterror()
         info = {

@@ -111,19 +111,17 @@ def _compile_ahead(scene, p: Plan, dtype):
     maps, or where this kind of block was compiled ahead before)."""
     if p.geometry != "table":
         return contextlib.nullcontext()
-    fb, dt = p.frames, scene.camera.dtype
-    first = frame(scene, slice(0, fb))
-    leaves, tree = jax.tree.flatten((first, p.kernel_key()))
+    fb, dt, accuracy = p.frames, scene.camera.dtype, float(scene.accuracy)
+    first, kernel = frame(scene, slice(0, fb)), p.kernel_key()
+    leaves, tree = jax.tree.flatten((first, kernel))
     key = (tree, tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves),
-           p.rows, p.pair, jnp.dtype(dtype).name, float(scene.accuracy))  # fmt: skip
+           p.rows, p.pair, jnp.dtype(dtype).name, accuracy)  # fmt: skip
     if key in _AHEAD:
         return contextlib.nullcontext()
     _AHEAD.add(key)
-    accuracy = float(scene.accuracy)
     one = jax.eval_shape(lambda d: _build_map(d, accuracy), jnp.zeros((), _map_dtype(dtype)))
     maps = jax.tree.map(lambda s: jnp.zeros((fb,) + s.shape, s.dtype), one).astype(dtype)
-    return compile_ahead(_block, first, p.kernel_key(), maps, jnp.asarray(0, dt), p.rows,
-                         p.pair)  # fmt: skip
+    return compile_ahead(_block, first, kernel, maps, jnp.asarray(0, dt), p.rows, p.pair)
 
 
 def render(
