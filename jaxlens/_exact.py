@@ -9,6 +9,7 @@ parameter ($b \\to b_c$, two roots merge at $u = 2/3$).
 
 import math
 
+import jax
 import jax.numpy as jnp
 
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
@@ -49,10 +50,14 @@ def carlson_rf(x, y, z, *, iterations: int = 12):
     **Returns:** $R_F(x, y, z)$.
     """
     x, y, z = jnp.broadcast_arrays(x, y, z)
-    for _ in range(iterations):
+
+    def step(_, xyz):
+        x, y, z = xyz
         sx, sy, sz = jnp.sqrt(x), jnp.sqrt(y), jnp.sqrt(z)
         lam = sx * (sy + sz) + sy * sz
-        x, y, z = 0.25 * (x + lam), 0.25 * (y + lam), 0.25 * (z + lam)
+        return 0.25 * (x + lam), 0.25 * (y + lam), 0.25 * (z + lam)
+
+    x, y, z = jax.lax.fori_loop(0, iterations, step, (x, y, z))
     a = (x + y + z) / 3.0
     dx, dy = 1.0 - x / a, 1.0 - y / a
     dz = -(dx + dy)
@@ -90,11 +95,15 @@ def carlson_rf_conj(zr, zi, w, *, iterations: int = 12):
     **Returns:** the (real) value of $R_F(z, \\bar z, w)$.
     """
     zr, zi, w = jnp.broadcast_arrays(zr, zi, w)
-    for _ in range(iterations):
+
+    def step(_, zw):
+        zr, zi, w = zw
         sr, si = _csqrt(zr, zi)
         sw = jnp.sqrt(w)
         lam = (sr * sr + si * si) + 2.0 * sw * sr  # |z| + 2 sqrt(w) Re sqrt(z)
-        zr, zi, w = 0.25 * (zr + lam), 0.25 * zi, 0.25 * (w + lam)
+        return 0.25 * (zr + lam), 0.25 * zi, 0.25 * (w + lam)
+
+    zr, zi, w = jax.lax.fori_loop(0, iterations, step, (zr, zi, w))
     a = (2.0 * zr + w) / 3.0
     xr, xi = 1.0 - zr / a, -zi / a  # X = 1 - z / A, Y = conj(X)
     dz = -2.0 * xr

@@ -13,7 +13,6 @@ float32 through `astype`), `trace(method="table")` calls it, point images solve 
 lens equation on it (`solve`), and the fit differentiates it with respect to $D$.
 """
 
-import functools
 import math
 
 import equinox as eqx
@@ -214,9 +213,13 @@ class RayMap(eqx.Module):
 def _tabulated(cls, d, *, knots, max_windings, captured, alpha_max, exact_slopes, iterations):
     """The body of `RayMap.build` for a float array `d`, the settings resolved."""
     alpha_sh = _exact.shadow_angle(d)
-    tab = functools.partial(_tabulate, n=knots, exact_slopes=exact_slopes, iterations=iterations)
-    outer = tab(d, alpha_sh, alpha_max - alpha_sh, +1.0)
-    inner = tab(d, alpha_sh, alpha_sh, -1.0) if captured else None
+    # Both sides of the shadow edge in one evaluation of the closed form (one copy of
+    # it in the program: compiling it dominates a first call).
+    spans = [(alpha_max - alpha_sh, 1.0)] + ([(alpha_sh, -1.0)] if captured else [])
+    sides = _tabulate(d, alpha_sh, spans, n=knots, exact_slopes=exact_slopes,
+                      iterations=iterations)  # fmt: skip
+    outer = sides[0]
+    inner = sides[1] if captured else None
     peri = None
     if captured:  # trace()'s full result: also 1/r_min of the escaping side
         gap = jnp.exp(outer[0])
@@ -234,28 +237,39 @@ def _tabulated(cls, d, *, knots, max_windings, captured, alpha_max, exact_slopes
 _tabulated_compiled = eqx.filter_jit(_tabulated)
 
 
-def _tabulate(d, alpha_sh, span, sign, *, n, exact_slopes, iterations):
+def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):
+    """`(knots, dtau, phi, slope)` of each side `(span, sign)` of the shadow edge, the
+    closed form evaluated once on all sides' knots together."""
     # Knots uniform in tau = ln|alpha - alpha_sh| from 1e-13 alpha_sh to `span` (the
     # last knot a hair short, where |sin(alpha)| has its kink at alpha = 0 or pi).
     floor = 1e-300 if d.dtype == jnp.float64 else 1e-37
-    tau_hi = jnp.log(jnp.maximum(span, jnp.finfo(d.dtype).tiny)) - 1e-13
     tau_lo = jnp.log(jnp.maximum(alpha_sh * _REL_START, floor))
-    dtau = (tau_hi - tau_lo) / (n - 1)
-    gap = jnp.exp(tau_lo + dtau * jnp.arange(n, dtype=d.dtype))
+    steps = jnp.arange(n, dtype=d.dtype)
+    knots, dtaus, alphas, tangents = [], [], [], []
+    for span, sign in spans:
+        tau_hi = jnp.log(jnp.maximum(span, jnp.finfo(d.dtype).tiny)) - 1e-13
+        dtau = (tau_hi - tau_lo) / (n - 1)
+        tau = tau_lo + dtau * steps
+        gap = jnp.exp(tau)
+        knots.append(tau)
+        dtaus.append(dtau)
+        alphas.append(alpha_sh + sign * gap)
+        tangents.append(sign * gap)
+    alpha = jnp.concatenate(alphas)
 
     def phi_of_alpha(a):
         return _exact.escape_angle(a, d, iterations=iterations, max_windings=1e6)[0]
 
-    knots = tau_lo + dtau * jnp.arange(n, dtype=d.dtype)
     if exact_slopes:
         # d phi / d tau = (d phi / d alpha) d alpha / d tau: one forward-mode pass.
-        phi, slope = jax.jvp(phi_of_alpha, (alpha_sh + sign * gap,), (sign * gap,))
+        phi, slope = jax.jvp(phi_of_alpha, (alpha,), (jnp.concatenate(tangents),))
+        phis, slopes = jnp.split(phi, len(spans)), jnp.split(slope, len(spans))
     else:
         # Materialised first (and its derivative, under a fit's Jacobian): the five
         # shifted reads of the differences would otherwise each recompute it.
-        phi = fusion_barrier(phi_of_alpha(alpha_sh + sign * gap), d)
-        slope = _difference_slopes(phi, dtau)
-    return knots, dtau, phi, slope
+        phis = jnp.split(fusion_barrier(phi_of_alpha(alpha), d), len(spans))
+        slopes = [_difference_slopes(p, h) for p, h in zip(phis, dtaus, strict=True)]
+    return list(zip(knots, dtaus, phis, slopes, strict=True))
 
 
 def _difference_slopes(phi, dtau):

@@ -97,7 +97,8 @@ def test_jit_vmap_and_both_gradient_modes():
     fwd_a = jax.vmap(jax.jacfwd(f, argnums=(0, 1)))(alpha, d)
     for h, (ga, gd), (fa, fd) in zip([1e-6], [grad_a], [fwd_a]):
         np.testing.assert_allclose(ga, fa, rtol=1e-12)
-        np.testing.assert_allclose(gd, fd, rtol=1e-12)
+        # d phi / dD is a difference of terms ~ phi / D: round-off ~ eps phi / D
+        np.testing.assert_allclose(gd, fd, rtol=1e-12, atol=4 * EPS * np.pi / float(d.max()))
         # central differences: error ~ h^2 phi''' + eps/h ~ 1e-10 relative
         fd_a = (f(alpha + h, d) - f(alpha - h, d)) / (2 * h)
         fd_d = (f(alpha, d * (1 + h)) - f(alpha, d * (1 - h))) / (2 * h * d)
