@@ -194,8 +194,9 @@ def plan(scene, *, chunk_samples: int = CHUNK_SAMPLES) -> Plan:
 
 
 def _staging() -> bool:
-    """Whether a caller's `jit` is tracing now (a new constant is then a tracer)."""
-    return isinstance(jax.lax.full((), 0.0), jax.core.Tracer)
+    """Whether a caller's `jit` is tracing now (a value placed on the device is then a
+    tracer; eagerly, placing it compiles nothing)."""
+    return isinstance(jax.device_put(0.0), jax.core.Tracer)
 
 
 def _plan(scene, chunk_samples):

@@ -52,18 +52,24 @@ def _map_dtype(dtype):
 
 
 @eqx.filter_jit
-def _build_map(distance, accuracy):
+def _build_map(distance, accuracy, dtype):
     # One compiled table builder for every distance of an accuracy, with the R_F
     # duplication steps of `trace`'s table (3e-14 rad; more add compile time only).
-    return RayMap.build(distance, accuracy=accuracy, iterations=TABLE_ITERATIONS)
+    # Returned in the pixel dtype with a batch axis: no eager op (each a small compile
+    # in a fresh process) between it and the block program.
+    ray_map = RayMap.build(distance, accuracy=accuracy, iterations=TABLE_ITERATIONS)
+    return jax.tree.map(lambda a: a[None], ray_map.astype(dtype))
 
 
 def ray_maps(distances, accuracy: float, dtype) -> RayMap:
     """Ray maps of a batch of distances `(N,)` (units of R_S), stacked: built in
     float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`."""
     d = np.asarray(distances, _map_dtype(dtype)).reshape(-1)
-    maps = [_build_map(jnp.asarray(x), float(accuracy)) for x in d]
-    return jax.tree.map(lambda *a: jnp.stack(a), *maps).astype(dtype)
+    maps = [_build_map(x, float(accuracy), jnp.dtype(dtype)) for x in d]
+    if len(maps) == 1:
+        return maps[0]
+    # Small tables (a few thousand knots): joined on the host, not by a compiled stack.
+    return jax.tree.map(lambda *a: jax.device_put(np.concatenate(a)), *maps)
 
 
 @eqx.filter_jit
@@ -88,9 +94,10 @@ def _prepare(scene: Scene, dtype):
     if len(cam.batch_shape) > 1:
         raise ValueError(f"camera has batch shape {cam.batch_shape}; expected () or (N,)")
     dtype = jnp.dtype(cam.dtype if dtype is None else dtype)
+    # On the host (a few numbers a frame): no eager device op, each a small compile.
+    cam = jax.tree.map(lambda a: np.asarray(a, dtype), cam)
     if cam.batch_shape == ():
         cam = jax.tree.map(lambda a: a[None], cam)
-    cam = jax.tree.map(lambda a: a.astype(dtype), cam)
     return eqx.tree_at(lambda s: s.camera, scene, cam), dtype
 
 
@@ -119,9 +126,12 @@ def _compile_ahead(scene, p: Plan, dtype):
     if key in _AHEAD:
         return contextlib.nullcontext()
     _AHEAD.add(key)
-    one = jax.eval_shape(lambda d: _build_map(d, accuracy), jnp.zeros((), _map_dtype(dtype)))
-    maps = jax.tree.map(lambda s: jnp.zeros((fb,) + s.shape, s.dtype), one).astype(dtype)
-    return compile_ahead(_block, first, kernel, maps, jnp.asarray(0, dt), p.rows, p.pair)
+    one = jax.eval_shape(
+        lambda d: _build_map(d, accuracy, jnp.dtype(dtype)),
+        jax.ShapeDtypeStruct((), _map_dtype(dtype)),
+    )
+    maps = jax.tree.map(lambda s: np.zeros((fb,) + s.shape[1:], s.dtype), one)
+    return compile_ahead(_block, first, kernel, maps, np.asarray(0, dt), p.rows, p.pair)
 
 
 def render(
@@ -178,8 +188,8 @@ def _run(scene, p: Plan, maps, progress):
     row_blocks = starts(h // 2 if pair else h, rows)
 
     def call(f0, r0):
-        m = jax.tree.map(lambda a: a[f0 : f0 + fb], maps)
-        return _block(frame(scene, slice(f0, f0 + fb)), key, m, jnp.asarray(r0, dtype), rows, pair)
+        m = maps if fb == n else jax.tree.map(lambda a: a[f0 : f0 + fb], maps)
+        return _block(frame(scene, slice(f0, f0 + fb)), key, m, np.asarray(r0, dtype), rows, pair)
 
     if p.blocks == 1:  # one block holds the whole batch, rows in image order
         return np.array(call(0, 0))  # a writable NumPy copy

@@ -364,7 +364,8 @@ def trace(
     dtype = jnp.result_type(float, alpha, distance)
     distance = _check_distance(distance, dtype)
     traced = isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer)
-    distance = jnp.asarray(distance, dtype)
+    # Host distances stay on the host (padded there by `_eager`, nothing compiled).
+    distance = (jnp if isinstance(distance, jax.Array) else np).asarray(distance, dtype)
     if isinstance(method, str):
         if method == "auto" and distance.ndim == 0 and np.size(alpha) >= _TABLE_MIN_RAYS:
             method = "table"  # many rays, one camera: tabulate once, interpolate

@@ -33,16 +33,27 @@ def is_zero(x) -> bool:
     return c is not None and bool(np.all(c == 0))
 
 
+def to_device(x, dtype=None) -> jax.Array:
+    """A host value (number, list, NumPy array) as a device array, in `dtype` if given:
+    converted on the host and placed (`jnp.asarray` compiles a small program for each
+    new shape and dtype, ~20-50 ms each in a fresh process)."""
+    return jax.device_put(np.asarray(x, dtype))
+
+
 def as_float(x, dtype=None) -> jax.Array:
     """`x` (array, tracer, list, number) as a floating-point JAX array: in `dtype` if
     given, else its own float dtype (integers and Python numbers take the default
     float dtype, float64 under `jax_enable_x64`). Used as the `converter=` of fields."""
+    if not isinstance(x, jax.Array):
+        # Host values are converted on the host and placed on the device: `jnp.asarray`
+        # compiles a small program for each new shape (~20 ms each in a fresh process).
+        a = np.asarray(x)
+        if dtype is None:
+            dtype = a.dtype if np.issubdtype(a.dtype, np.floating) else jnp.result_type(float)
+        return jax.device_put(a.astype(jax.dtypes.canonicalize_dtype(dtype)))
     if dtype is not None:
         return jnp.asarray(x, dtype)
-    if not isinstance(x, jax.Array):
-        x = np.asarray(x)
-    a = jnp.asarray(x)
-    return a if jnp.issubdtype(a.dtype, jnp.floating) else a.astype(jnp.result_type(float))
+    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
 
 
 def fusion_barrier(tree, anchor):

@@ -141,17 +141,21 @@ def angular_distance(n: Float[Array, "... 3"], s: Float[ArrayLike, "3"]) -> Floa
 def direction_from_angles(lon: ArrayLike, lat: ArrayLike) -> Float[Array, "... 3"]:
     """Unit vector at longitude `lon`, latitude `lat` (radians); (0, 0) is $+z$,
     behind the hole; longitude grows toward $+x$, latitude toward $+y$."""
-    lon, lat = jnp.broadcast_arrays(
-        *(jnp.asarray(a, jnp.result_type(float, lon, lat)) for a in (lon, lat))
-    )
-    return jnp.stack([jnp.cos(lat) * jnp.sin(lon), jnp.sin(lat), jnp.cos(lat) * jnp.cos(lon)], -1)
+    dtype = jnp.result_type(float, lon, lat)
+    # Values known now are computed on the host: each eager jnp operation would compile.
+    host = not any(isinstance(a, jax.core.Tracer) for a in (lon, lat))
+    xp = np if host else jnp
+    lon, lat = xp.broadcast_arrays(*(xp.asarray(a, dtype) for a in (lon, lat)))
+    n = xp.stack([xp.cos(lat) * xp.sin(lon), xp.sin(lat), xp.cos(lat) * xp.cos(lon)], -1)
+    return jax.device_put(n) if host else n
 
 
 def angles_from_direction(n: Float[Array, "... 3"]):
     """Longitude in $(-\\pi, \\pi]$ and latitude in $[-\\pi/2, \\pi/2]$ (radians) of
-    directions `n (..., 3)` (inverse of `direction_from_angles`)."""
-    lon = arctan2(n[..., 0], n[..., 2])
-    lat = arctan2(n[..., 1], jnp.sqrt(n[..., 0] ** 2 + n[..., 2] ** 2))
+    directions `n (..., 3)` (inverse of `direction_from_angles`); NumPy in, NumPy out."""
+    atan2, sqrt = (np.arctan2, np.sqrt) if isinstance(n, np.ndarray) else (arctan2, jnp.sqrt)
+    lon = atan2(n[..., 0], n[..., 2])
+    lat = atan2(n[..., 1], sqrt(n[..., 0] ** 2 + n[..., 2] ** 2))
     return lon, lat
 
 

@@ -9,7 +9,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import _schema
 from .._schema import Key, anything
-from .._util import as_float as _farray, concrete as _concrete
+from .._util import as_float as _farray, concrete as _concrete, to_device
 from ._base import AbstractCompactSky, angular_distance, direction_from_angles, finite, positive
 from ._table import SIGMA
 
@@ -52,7 +52,11 @@ class GaussianStar(AbstractCompactSky):
             c = _concrete(d)
             if c is not None and (c.shape != (3,) or not np.all(np.isfinite(c)) or not c.any()):
                 raise ValueError(f"direction={c.tolist()!r} must be a finite non-zero 3-vector")
-            d = d / jnp.linalg.norm(d)
+            d = (
+                to_device(c / np.linalg.norm(c), d.dtype)
+                if c is not None
+                else d / jnp.linalg.norm(d)
+            )
         self.direction = d
         self.color = _farray(color)
 
