@@ -132,13 +132,17 @@ def shadow_angle(distance):
     **Returns:** $\\alpha_{sh}$ in radians, measured from the direction of the
     hole; above $\\pi/2$ for $D < 1.5$.
     """
-    d = jnp.asarray(distance)
+    return _shadow_angle(jnp.asarray(distance), jnp)
+
+
+def _shadow_angle(d, xp):
+    """`shadow_angle` with the array module `xp` (NumPy: on the host, nothing compiled)."""
     u0 = 1.0 / d
-    s = B_CRIT * jnp.sqrt((d - 1.0) / d) / d
+    s = B_CRIT * xp.sqrt((d - 1.0) / d) / d
     # cos(alpha_sh) = (2 - 3 u0) sqrt(1 + 3 u0) / 2 exactly (1 - s^2 factorises), so
     # atan2 keeps full accuracy at D = 1.5, where asin(s) would lose half the digits.
-    c = (2.0 - 3.0 * u0) * jnp.sqrt(1.0 + 3.0 * u0) / 2.0
-    return jnp.arctan2(s, c)
+    c = (2.0 - 3.0 * u0) * xp.sqrt(1.0 + 3.0 * u0) / 2.0
+    return xp.arctan2(s, c)
 
 
 def real_roots(s, kappa):

@@ -30,7 +30,6 @@ from collections import deque
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 _EDGE = 0.25  # width of the shadow's edge in the model (pixels)
@@ -683,9 +682,8 @@ def offset_from_radii(rho_outer, rho_inner, distance, focal):
             *(np.asarray(v, np.float64) for v in (rho_outer, rho_inner, distance, focal))
         )
         alpha = np.arctan2(np.stack([ro, ri]), np.stack([f, f]))
-        res = jaxlens.trace(
-            jnp.asarray(alpha), jnp.asarray(np.stack([d, d])), accuracy=1e-12, method="exact"
-        )
+        # Host arrays: padded on the host, no eager device operation to compile.
+        res = jaxlens.trace(alpha, np.stack([d, d]), accuracy=1e-12, method="exact")
         phi = np.asarray(res.phi)
         esc = np.asarray(res.escaped)
     two = 0.5 * (phi[1] - phi[0])

@@ -13,9 +13,9 @@ import optimistix as optx
 
 from .. import _kernel, _plan
 from .._camera import Camera
-from .._exact import shadow_angle
+from .._exact import _shadow_angle
 from .._scene import Scene
-from .._util import compile_ahead
+from .._util import compile_ahead, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
@@ -79,10 +79,10 @@ class _Select(eqx.Module):
 def _select(names, free, values) -> _Select:
     """The `_Select` of the parameters `free` (physical `values` for every name)."""
     return _Select(
-        jnp.asarray([names.index(n) for n in free], jnp.int32),
-        jnp.asarray([n in free for n in names]),
-        jnp.asarray([parameter(n).transform.inverse(values[n]) for n in names]),
-        jnp.asarray([float(values[n]) for n in names]),
+        to_device([names.index(n) for n in free], jnp.int32),
+        to_device([n in free for n in names]),
+        to_device([parameter(n).transform.inverse(values[n]) for n in names]),
+        to_device([float(values[n]) for n in names]),
     )
 
 
@@ -291,7 +291,7 @@ def _arcs_distance_scan(theta0, free, arcs, width, blur_px, args, prob):
         for n, v in values.items():
             if n in free:
                 cand[free.index(n)] = parameter(n).transform.inverse(float(v[j]))
-        loss = float(_loss(jnp.asarray(cand), args, prob))
+        loss = float(_loss(to_device(cand), args, prob))
         if loss < best_loss:
             best, best_loss = cand, loss
     return best
@@ -475,7 +475,7 @@ def fit(
         # flat; with one, a regular grid of bins rendered on a margin the PSF reaches.
         centre = (arcs.x_c, arcs.y_c) if found else (0.0, 0.0)
         if psf_kind is None:
-            rho_sh = f_px * math.tan(float(shadow_angle(max(start["distance"], 1.6))))
+            rho_sh = f_px * math.tan(_shadow_angle(max(start["distance"], 1.6), np))
             pix = _pixel_sets(gray, prof, rho_sh, max_pixels or 40_000, block, valid=valid,
                               centre=centre, structure=prof.floor + 3.0 * noise_sigma)  # fmt: skip
         else:
@@ -486,16 +486,17 @@ def fit(
             pix = _grid_sets(gray, valid, int(block))
         block, data, count = pix.block, pix.data, pix.count
         k = int(supersample) if supersample is not None else _samples_for(prof.ring_width, block)
-        cam = Camera(start["distance"], start["fov"], w, h, yaw=cam0.yaw, pitch=cam0.pitch,
-                     roll=cam0.roll, supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
-        sky = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), scene.sky)
+        yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
+        cam = Camera(start["distance"], start["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
+                     supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
+        sky = jax.tree.map(lambda a: to_device(a, np.float64), scene.sky)
         # Values given for parameters held fixed are the model's.
         held = {n: v for n, v in init.items() if n not in free}
         model_scene = apply(Scene(cam, sky), {n: v for n, v in held.items() if in_scene(n)})
         pad, otf = 0, None
         if psf_kind is None:
-            grid = tuple(jnp.asarray(np.concatenate(v)) for v in zip(pix.fine, pix.coarse_edges))
-            grid += (jnp.asarray(pix.side, jnp.float64),)
+            grid = tuple(to_device(np.concatenate(v)) for v in zip(pix.fine, pix.coarse_edges))
+            grid += (to_device(pix.side, jnp.float64),)
         else:
             if psf_kind == "gaussian":
                 pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // block)
@@ -505,7 +506,7 @@ def fit(
             x0, y0 = (np.asarray(v) for v in _pixel_edges(w, h, block, np.float64))
             xs = x0[0, 0] + block * np.arange(-pad, x0.shape[1] + pad)
             ys = y0[0, 0] - block * np.arange(-pad, y0.shape[0] + pad)
-            grid = tuple(jnp.asarray(v) for v in np.meshgrid(xs, ys))
+            grid = tuple(to_device(v) for v in np.meshgrid(xs, ys))
             if psf_kind == "image":
                 otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
         # Every parameter of the model: the scene's own, then the PSF's width and the
@@ -519,16 +520,16 @@ def fit(
         sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
         prob = _Problem(names, block, k, pad, kind, psf_kind, int(knots))
         # Clipping acts on each original pixel, with its own noise.
-        clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
-        args = (model_scene, grid, otf, jnp.asarray(data), jnp.asarray(np.sqrt(count)), clip,
-                jnp.asarray(gain if gain is not None else 1.0), sel)  # fmt: skip
+        clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
+        args = (model_scene, grid, otf, to_device(data), to_device(np.sqrt(count)), clip,
+                to_device(gain if gain is not None else 1.0), sel)  # fmt: skip
         theta0 = np.asarray([parameter(n).transform.inverse(start[n]) for n in free])
         if atol is None:
             atol = 1e-6
-        solve_args = (args, prob, jnp.asarray(rtol), jnp.asarray(atol), int(max_steps))
+        solve_args = (args, prob, to_device(rtol), to_device(atol), int(max_steps))
         # The solver's program (the largest) compiles on a thread while the starting
         # values' scans below compile and run.
-        with compile_ahead(_solve, jnp.asarray(theta0), *solve_args):
+        with compile_ahead(_solve, to_device(theta0), *solve_args):
             # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
             # refined by a scan of the loss along their azimuth.
             for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
@@ -556,13 +557,13 @@ def fit(
                 cands = np.repeat(theta0[None], len(offsets), axis=0)
                 cands[:, i_lon] = np.asarray(offsets) * math.cos(psi)
                 cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
-                losses = [float(_loss(jnp.asarray(c), args, prob)) for c in cands]
+                losses = [float(_loss(to_device(c), args, prob)) for c in cands]
                 theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
         clipped = math.isfinite(lo) or math.isfinite(hi)
         passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
         steps = 0  # over the passes
         for _ in range(passes):
-            theta, r, jac, model, result, taken = _solve(jnp.asarray(theta0), args,
+            theta, r, jac, model, result, taken = _solve(to_device(theta0), args,
                                                           *solve_args[1:])  # fmt: skip
             steps += int(taken)
             if passes == 2:
@@ -577,7 +578,7 @@ def fit(
                     # larger noise (seen: noise x 3, floor 0 for 0.05, chi^2/dof 0.1).
                     refit = float(np.std((data - m_np)[inside] * np.sqrt(count[inside])))
                     noise_sigma = min(max(refit, 0.7 * noise_sigma), 1.5 * noise_sigma)
-                    clip = jnp.asarray([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
+                    clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
                     args = args[:5] + (clip,) + args[6:]
                 theta0 = np.asarray(theta)
         theta, r = np.asarray(theta), np.asarray(r).ravel()

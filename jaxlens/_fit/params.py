@@ -14,9 +14,11 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._sky import GaussianStar, SkySum, Uniform
 from .._sky._base import angles_from_direction, direction_from_angles
+from .._util import to_device
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,10 +30,13 @@ class Transform:
     hi: float = math.inf
 
     def forward(self, t):
+        """The physical value of internal `t` (on the host for host numbers)."""
+        host = isinstance(t, (float, np.floating))
         if self.kind == "above":
-            return self.lo + jnp.exp(t)
+            return self.lo + (math.exp(t) if host else jnp.exp(t))
         if self.kind == "between":
-            return self.lo + (self.hi - self.lo) * jax.nn.sigmoid(t)
+            sig = 0.5 * (1.0 + math.tanh(0.5 * t)) if host else jax.nn.sigmoid(t)
+            return self.lo + (self.hi - self.lo) * sig
         return t
 
     def inverse(self, v: float) -> float:
@@ -159,14 +164,14 @@ def values_of(scene) -> dict:
     out = {}
     for name in ("distance", "fov", "yaw", "pitch", "floor"):
         try:
-            out[name] = float(jnp.mean(jnp.asarray(PARAMETERS[name].where(scene))))
+            out[name] = float(np.mean(np.asarray(PARAMETERS[name].where(scene))))
         except ValueError:
             continue
     for i, star in enumerate(_parts(scene.sky, GaussianStar), start=1):
-        lon, lat = angles_from_direction(star.direction)
+        lon, lat = angles_from_direction(np.asarray(star.direction))
         out[f"source_lon{_suffix(i)}"], out[f"source_lat{_suffix(i)}"] = float(lon), float(lat)
-        out[f"sigma{_suffix(i)}"] = float(jnp.mean(star.sigma))
-        out[f"brightness{_suffix(i)}"] = float(jnp.mean(star.brightness))
+        out[f"sigma{_suffix(i)}"] = float(np.mean(np.asarray(star.sigma)))
+        out[f"brightness{_suffix(i)}"] = float(np.mean(np.asarray(star.brightness)))
     return out
 
 
@@ -184,13 +189,19 @@ def apply(scene, values: dict):
         if p.where is None:
             continue
         old = p.where(scene)
-        new = jnp.broadcast_to(jnp.asarray(v, dt), jnp.shape(old)).astype(jnp.asarray(old).dtype)
+        if isinstance(v, jax.core.Tracer | jax.Array):
+            new = jnp.broadcast_to(jnp.asarray(v, dt), jnp.shape(old)).astype(jnp.result_type(old))
+        else:  # a host value: placed, not computed by eager operations
+            new = to_device(np.broadcast_to(np.asarray(v, dt), np.shape(old)), jnp.result_type(old))
         scene = eqx.tree_at(p.where, scene, new)
     for i, given in moved.items():
         star = star_of(scene.sky, i)
-        cur = angles_from_direction(star.direction)
+        n, dt = star.direction, jnp.result_type(star.direction)
+        host = not any(isinstance(x, jax.core.Tracer) for x in (n, *given.values()))
+        cur = angles_from_direction(np.asarray(n) if host else n)
         lon = given.get("source_lon", cur[0])
         lat = given.get("source_lat", cur[1])
-        d = direction_from_angles(lon, lat).astype(star.direction.dtype)
+        d = direction_from_angles(lon, lat)
+        d = to_device(np.asarray(d), dt) if host else d.astype(dt)
         scene = eqx.tree_at(lambda s: star_of(s.sky, i).direction, scene, d)
     return scene

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._util import to_device
 from .model import _pixel_basis
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
 from .solve import _Setup
@@ -311,9 +312,9 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
     # then the expected clipped value, with the noise of one original pixel.
     lo, hi = _clipping(img)
     noise = _noise_clipped(img, prof, lo, hi)
-    clip0 = jnp.asarray([lo, hi, noise]) / scale  # clipping acts per original pixel
-    args0 = (x0c, y0c, jnp.asarray(cimg), jnp.asarray(scale), clip0,
-             jnp.asarray(float(star_sigma is None)))  # fmt: skip
+    clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
+    args0 = (x0c, y0c, to_device(cimg), to_device(scale), clip0,
+             to_device(float(star_sigma is None)))  # fmt: skip
     cands = _ring_candidates(prof, w, star_sigma)
     extra = np.full((3, 3), np.nan)
     extra[:, 1] = 1.0
@@ -328,10 +329,10 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
             f"no camera distance puts an Einstein ring at {prof.ring_radius:.3g} pixels "
             f"from the centre of a {w}-pixel-wide image"
         )
-    halves = jnp.asarray([prof.inner_half, prof.outer_half])
+    halves = to_device([prof.inner_half, prof.outer_half])
 
     def losses(c, steps):
-        out = _candidate_losses(jnp.asarray(c), halves, args0, setup0, jnp.asarray(steps))
+        out = _candidate_losses(to_device(c), halves, args0, setup0, to_device(steps))
         return [np.asarray(v) for v in out]
 
     # One step each, then the shortlist by all the steps (the other rows skipped: NaN D,
