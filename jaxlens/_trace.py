@@ -361,6 +361,10 @@ def trace(
         raise ValueError(f"accuracy={accuracy!r} must be > 0 (radians)")
     if not max_windings > 0:
         raise ValueError(f"max_windings={max_windings!r} must be > 0")
+    for name, x in (("alpha", alpha), ("distance", distance)):
+        kind = np.dtype(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
+        if kind.kind not in "iuf":  # integers are converted; complex, bool, text are not
+            raise TypeError(f"{name} must be real numbers, got dtype {kind}")
     dtype = jnp.result_type(float, alpha, distance)
     distance = _check_distance(distance, dtype)
     traced = isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer)

@@ -174,6 +174,29 @@ def test_ring_image_matches_the_renderer():
     assert ours[edge].sum() == pytest.approx(theirs[edge].sum(), rel=5e-3)
 
 
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"distance": 1.2}, "distance=1.2 must be finite and > 1.5"),
+     ({"fov": 0.0}, "fov=0.0 must be in"), ({"fov": math.pi}, "fov="),
+     ({"sigma": -0.01}, "sigma=-0.01 must be"), ({"floor": math.nan}, "floor=nan"),
+     ({"brightness": 1j}, "brightness must be real"),
+     ({"width": 0}, "width=0 must be a whole number"), ({"height": 2.5}, "height=2.5"),
+     ({"supersample": True}, "supersample=True")],
+)  # fmt: skip
+def test_ring_image_refuses_bad_values(kwargs, match):
+    args = {"distance": 20.0, "fov": 1.0, "width": 8, "height": 6, "sigma": 0.02} | kwargs
+    w, h = args.pop("width"), args.pop("height")
+    with pytest.raises(ValueError, match=re.escape(match)):
+        ring_image(args.pop("distance"), args.pop("fov"), w, h, **args)
+
+
+def test_ring_image_checks_traced_values_at_run_time():
+    f = jax.jit(lambda d: ring_image(d, 1.0, 8, 6, sigma=0.02))
+    assert np.all(np.isfinite(np.asarray(f(20.0))))
+    with pytest.raises(Exception, match="distance must be finite and > 1.5"):
+        jax.block_until_ready(f(1.2))
+
+
 def test_model_gradient_matches_finite_differences():
     """d(image)/dD and d(image)/dFOV by forward-mode autodiff against central
     differences of the same area-sampled image."""

@@ -78,6 +78,23 @@ def test_bad_distance_errors_under_jit():
         jax.block_until_ready(f(0.9))
 
 
+@pytest.mark.parametrize(
+    "alpha, distance",
+    [(np.array([0.3 + 0.1j]), 10.0), (np.array([True]), 10.0), (np.array(["0.3"]), 10.0),
+     (0.3, np.array([10.0 + 0j])), (np.array([0.3], object), 10.0)],
+)  # fmt: skip
+def test_non_real_inputs_are_refused(alpha, distance):
+    with pytest.raises(TypeError, match="must be real numbers"):
+        jl.trace(alpha, distance)
+
+
+def test_integer_inputs_are_converted():
+    got = jl.trace(np.array([0, 1, 3]), 10)
+    want = jl.trace(np.array([0.0, 1.0, 3.0]), 10.0)
+    assert jnp.issubdtype(got.phi.dtype, jnp.floating)
+    np.testing.assert_array_equal(got.phi, want.phi)
+
+
 def test_bad_options():
     with pytest.raises(ValueError, match="accuracy"):
         jl.trace(0.3, 10.0, accuracy=0.0)

@@ -1,6 +1,7 @@
 """The per-pixel observation model: the renderer's area-exact sampling of a star behind
 the hole over a floor (the basis images of the fit) and `ring_image`."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +11,7 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
+from .._util import concrete
 from .table import escape_table
 
 
@@ -116,8 +118,23 @@ def ring_image(
       2); 1 is the exact area average, as `RingFit.ring_flux` reports it.
     - `supersample`: $k$ (static).
 
-    **Returns:** linear intensity `(height, width)`; captured rays are 0.
+    **Returns:** linear intensity `(height, width)`; captured rays are 0. Bad values
+    raise `ValueError` when known (eagerly), and an error at run time under `jit`.
     """
+    for name, v in (("width", width), ("height", height), ("supersample", supersample)):
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+            raise ValueError(f"{name}={v!r} must be a whole number >= 1 (pixels)")
+    distance, fov, sigma, brightness, floor, ring_flux = (
+        _checked(v, name, ok, valid)
+        for v, name, ok, valid in (
+            (distance, "distance", lambda d: d > 1.5, "finite and > 1.5 (units of R_S)"),
+            (fov, "fov", lambda f: (f > 0) & (f < np.pi), "in (0, pi) radians"),
+            (sigma, "sigma", lambda s: s > 0, "finite and > 0 (radians)"),
+            (brightness, "brightness", None, "finite"),
+            (floor, "floor", None, "finite"),
+            (ring_flux, "ring_flux", None, "finite"),
+        )
+    )
     distance = jnp.asarray(distance, jnp.result_type(float, distance))
     dtype = distance.dtype
     table = escape_table(distance)
@@ -127,6 +144,24 @@ def ring_image(
         table, focal, jnp.asarray(sigma, dtype), x0, y0, width=width, block=1, k=int(supersample)
     )
     return brightness * (g + ring_flux * t) + floor * c
+
+
+def _checked(value, name, ok, valid):
+    """`value` checked: finite, real and `ok` (a `ValueError` when it is known, an
+    `eqx.error_if` at run time when traced)."""
+    c = concrete(value)
+    if c is not None:
+        if c.dtype.kind not in "iuf":
+            raise ValueError(f"{name} must be real numbers, got dtype {c.dtype}")
+        good = np.isfinite(c) & (ok(c) if ok is not None else True)
+        if not np.all(good):
+            bad = c[~good] if c.ndim else c
+            raise ValueError(f"{name}={float(bad.flat[0])!r} must be {valid}")
+        return value
+    bad = ~jnp.isfinite(value)
+    if ok is not None:
+        bad = bad | ~ok(value)
+    return eqx.error_if(value, jnp.any(bad), f"{name} must be {valid}")
 
 
 def _samples_for(ring_width_px, block):
