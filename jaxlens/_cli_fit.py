@@ -1,9 +1,24 @@
 """`jaxlens fit`: the camera distance, field of view and source position from an image of
 a lensed star (a ring, or arcs from a star off the axis)."""
 
+import argparse
 import json
 import math
 import sys
+
+
+def _noise(text):
+    if text in ("gaussian", "poisson"):
+        return text
+    try:
+        sigma = float(text)
+    except ValueError:
+        sigma = math.nan
+    if not (math.isfinite(sigma) and sigma > 0):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not gaussian, poisson or a noise sigma > 0 (pixel values)"
+        )
+    return sigma
 
 
 def _number(name, text):
@@ -48,9 +63,10 @@ def register(sub):
     )
     p.add_argument(
         "--noise",
-        choices=("gaussian", "poisson"),
+        type=_noise,
         default="gaussian",
-        help="noise model (default gaussian, sigma estimated)",
+        help="noise model: gaussian (sigma estimated from the image, the default), poisson, "
+        "or the Gaussian sigma itself in pixel values (e.g. 0.01)",
     )
     p.add_argument(
         "--gain",

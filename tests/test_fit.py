@@ -281,6 +281,26 @@ def test_recovery_on_rendered_rings(d, fov, sig, floor, given, noise):
         assert abs(got / true - 1) < 0.01
         assert abs(got - true) < 4 * err
     assert fit.noise == pytest.approx(noise, rel=0.1)
+    assert "no pixel noise" not in fit.message
+
+
+def test_white_noise_is_told_from_structure():
+    from jaxlens._fit.noise import white_noise_found
+
+    clean = np.asarray(modelled(20.0, 60.0, 1.5, 0.1, w=192, h=144))
+    assert not white_noise_found(clean)[0]  # smooth structure only
+    assert not white_noise_found(np.round(clean * 255) / 255)[0]  # and quantised
+    assert not white_noise_found(np.full((40, 50), 0.3))[0]  # flat
+    rng = np.random.default_rng(5)
+    for level in (1e-5, 1e-3, 1e-1):
+        found, ratio = white_noise_found(clean + level * rng.standard_normal(clean.shape))
+        assert found and 0.7 < ratio < 1.3, (level, ratio)
+
+
+def test_noiseless_image_is_flagged():
+    # A noiseless image: the estimated "noise" is structure, its errors no measurement's.
+    fit = fit_ring(rendered(20.0, 60.0, 1.5, 0.1), supersample=K)
+    assert "no pixel noise found" in fit.message
 
 
 @pytest.mark.parametrize("bits", [8, 16])

@@ -19,7 +19,7 @@ from .._util import compile_ahead, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
-from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean
+from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, white_noise_found
 from .params import apply, floor_of, in_scene, parameter, split_name, star_of, values_of
 from .pixels import _grid_sets, _pixel_sets
 from .result import _result_name, _ring_verdict
@@ -386,6 +386,9 @@ def fit(
     lo, hi = _clipping(gray)
     sigma_known = isinstance(noise, (int, float))
     noise_sigma = float(noise) if sigma_known else _noise_level(gray)
+    # An estimated noise must be the image's own: a noiseless (rendered, averaged)
+    # image gives errors that measure the misfit, not a measurement's scatter.
+    noise_seen = sigma_known or noise == "poisson" or white_noise_found(gray)[0]
     kind = "poisson" if noise == "poisson" else "gaussian"
     if kind == "poisson" and gain is None:
         gain = _gain_estimate(img, valid)
@@ -588,12 +591,13 @@ def fit(
         fitted = apply(model_scene, {n: v for n, v in phys.items() if in_scene(n)})
     out = _finish(fitted, free, phys, start, theta, r, jac, result, steps, model, data, count,
                   kind, noise_sigma, gain, block, k, prob, t_start,
-                  sigma_known, pix, math.isfinite(prof.shadow_radius))  # fmt: skip
+                  sigma_known, pix, math.isfinite(prof.shadow_radius), noise_seen)  # fmt: skip
     return dataclasses.replace(out, transfer=transfer)
 
 
 def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data, count, kind,
-            noise_sigma, gain, block, k, prob, t_start, sigma_known, pix, shadow_seen):  # fmt: skip
+            noise_sigma, gain, block, k, prob, t_start, sigma_known, pix, shadow_seen,
+            noise_seen):  # fmt: skip
     from .fit_result import Fit
 
     prior = 1  # the last residual: the ring-flux prior (0 when the flux is held)
@@ -653,6 +657,10 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
         if deg_r:
             degenerate = True
             notes.append(note)
+    if not noise_seen:
+        notes.append("no pixel noise found in the image (a noiseless or smoothed one?): the "
+                     "errors measure the misfit, not a noise; give the noise level "
+                     "(noise=, --noise SIGMA) for errors that do")  # fmt: skip
     if kind == "gaussian" and chi2_dof > 4.0:
         notes.append(f"residuals {math.sqrt(chi2_dof):.2g} times the image's noise: the model "
                      "does not describe the image")  # fmt: skip

@@ -58,6 +58,28 @@ def _noise_level(img):
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(6.0))
 
 
+def white_noise_found(img) -> tuple[bool, float]:
+    """Whether the image carries pixel noise: the robust noise estimates from second and
+    from fourth differences along rows (each scaled to white noise) agree for pixel
+    noise (ratio ~1; 0.76 for noise averaged over two pixels), while smooth structure
+    sets the second differences of a noiseless image and barely reaches the fourth
+    (a flat image: both 0), and round-off (below 1e-6 of the largest value) is no
+    measurement's noise. **Returns:** `(found, ratio)`, found when the ratio is within
+    [0.5, 2] and the noise above round-off."""
+    d2 = img[:, 2:] - 2.0 * img[:, 1:-1] + img[:, :-2]
+    d4 = d2[:, 2:] - 2.0 * d2[:, 1:-1] + d2[:, :-2]
+    if d4.size < 8:
+        return True, math.nan
+
+    def mad(d):
+        return float(np.median(np.abs(d - np.median(d))))
+
+    s2, s4 = mad(d2) / math.sqrt(6.0), mad(d4) / math.sqrt(70.0)
+    ratio = s4 / s2 if s2 > 0 else 0.0
+    above_roundoff = s2 > 1e-6 * float(np.max(np.abs(img)))
+    return bool(above_roundoff and 0.5 <= ratio <= 2.0), ratio
+
+
 def _clipping(img):
     """Bounds at which the stored values were clipped: 0 (1) when at least 0.2 % of the
     pixels sit exactly there, else -inf (inf)."""
