@@ -59,6 +59,20 @@ def test_orbit_inside_the_photon_sphere_raises_under_jit():
         jax.block_until_ready(f(jnp.asarray(1.4)))
 
 
+def test_field_of_view_below_the_dtype_resolution():
+    # Samples closer than 4 ulps of the dtype: 6 px across, float32 -> 1.6e-4 degrees.
+    small = jl.Camera(20.0, math.radians(1e-4), 6, 4, dtype=np.float32)
+    with pytest.raises(ValueError, match=r"at least 0.00016\d* degrees .*float64 reaches"):
+        jl.render(small, SKY)
+    f = jax.jit(lambda fov: jl.render_array(jl.Camera(20.0, fov, 6, 4), SKY))
+    with pytest.raises(Exception, match="narrower fields are below the resolution"):
+        jax.block_until_ready(f(np.float32(math.radians(1e-4))))
+    # The same field in float64, and float32 just above its limit, render.
+    ok = jl.Camera(20.0, math.radians(1e-4), 6, 4, dtype=np.float64)
+    assert np.all(np.isfinite(jl.render(ok, SKY)))
+    assert np.all(np.isfinite(np.asarray(f(np.float32(math.radians(2e-4))))))
+
+
 def test_the_same_values_are_value_errors_eagerly():
     with pytest.raises(ValueError, match="distance"):
         jl.Camera(0.5, 1.0, 6, 4)
