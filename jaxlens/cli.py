@@ -6,10 +6,12 @@ file (every file is written atomically).
 """
 
 import argparse
+import functools
 import importlib
 import os
 import signal
 import sys
+import threading
 from pathlib import Path
 
 # Each subcommand lives in a module with `register(subparsers)`; the handler it sets
@@ -88,28 +90,57 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(SystemExit):
+    """SIGTERM, raised where the program is: it unwinds (temporary files are removed)."""
+
+
 def _terminate(signum, frame):
-    raise SystemExit(128 + signum)  # unwinds: temporary files are removed
+    raise _Terminated(128 + signum)
+
+
+def _redeliver(unraisable, hook=sys.unraisablehook):
+    """`sys.unraisablehook`: an interrupt raised where Python ignores exceptions (a
+    garbage-collector callback, as JAX installs) is sent again, so that Ctrl-C or
+    SIGTERM stops the command instead of being lost; other reports go to `hook`."""
+    exc = unraisable.exc_value
+    if isinstance(exc, KeyboardInterrupt | _Terminated):
+        sig = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
+        timer = threading.Timer(0.05, os.kill, (os.getpid(), sig))
+        timer.daemon = True
+        timer.start()
+        return
+    hook(unraisable)
 
 
 def main(argv=None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _configure_cache()
+    # The handlers hold from the start: a signal while JAX loads (the first seconds)
+    # ends the command with its one line too, not a traceback.
+    command = "jaxlens"
     previous = signal.getsignal(signal.SIGTERM)
     try:
         signal.signal(signal.SIGTERM, _terminate)
     except ValueError:  # not the main thread
         previous = None
+    hook, sys.unraisablehook = (
+        sys.unraisablehook,
+        functools.partial(_redeliver, hook=sys.unraisablehook),
+    )
     try:
+        args = build_parser().parse_args(argv)
+        command = f"jaxlens {args.command}"
+        _configure_cache()
         return int(args.run(args) or 0)
     except (UsageError, ValueError, OSError) as e:
-        print(f"jaxlens {args.command}: error: {one_line(e)}", file=sys.stderr)
+        print(f"{command}: error: {one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"jaxlens {args.command}: interrupted", file=sys.stderr)
+        print(f"{command}: interrupted", file=sys.stderr)
         return 130
+    except _Terminated as e:
+        print(f"{command}: terminated", file=sys.stderr)
+        return int(e.code)
     finally:
+        sys.unraisablehook = hook
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
