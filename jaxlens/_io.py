@@ -4,13 +4,19 @@ PyAV (the optional `video` extra): plain Python at the edges, never jitted.
 Every file is written atomically: to a hidden temporary file in the destination
 folder, which is renamed over the destination (`os.replace`) only once it is complete,
 and removed on any failure, Ctrl-C included. A reader never sees a half-written file.
+A process killed outright (SIGKILL, power loss) cannot remove its temporary file: the
+name, `.NAME.jaxlens-tmp.HOST.PID.RANDOM.EXT`, says whose it was, and the next write
+to the same destination (or `jaxlens clean FOLDER`) removes those of processes of this
+host that no longer run.
 """
 
 import contextlib
 import fractions
+import glob
 import io
 import math
 import os
+import socket
 import tempfile
 from pathlib import Path
 
@@ -143,12 +149,48 @@ def _umask() -> int:
     return mask
 
 
+_TMP_TAG = ".jaxlens-tmp."
+
+
+def _host() -> str:
+    return "".join(c if c.isalnum() or c == "-" else "-" for c in socket.gethostname()) or "-"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by another user
+        return True
+    return True
+
+
+def stale_temporaries(folder, stem: str | None = None) -> list[Path]:
+    """This library's temporary files in `folder` (of destination stem `stem`, if given)
+    left by processes of this host that no longer run."""
+    host = _host()
+    out = []
+    pattern = f".{glob.escape(stem) if stem is not None else '*'}{_TMP_TAG}{host}.*"
+    for p in Path(folder).glob(pattern):
+        parts = p.name.rsplit(_TMP_TAG, 1)[1].split(".")
+        if len(parts) >= 3 and parts[0] == host and parts[1].isdigit():
+            if int(parts[1]) != os.getpid() and not _running(int(parts[1])):
+                out.append(p)
+    return sorted(out)
+
+
 @contextlib.contextmanager
 def atomic_output(path):
     """Context manager: yields a temporary path beside `path`; on a normal exit it
-    is renamed to `path`, on any exception (KeyboardInterrupt too) it is removed."""
+    is renamed to `path`, on any exception (KeyboardInterrupt too) it is removed.
+    Temporaries of `path` left by killed processes are removed first."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    for stale in stale_temporaries(path.parent, path.stem):
+        with contextlib.suppress(OSError):
+            stale.unlink()
+    prefix = f".{path.stem}{_TMP_TAG}{_host()}.{os.getpid()}."
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         yield tmp

@@ -16,7 +16,7 @@ from pathlib import Path
 
 # Each subcommand lives in a module with `register(subparsers)`; the handler it sets
 # with `set_defaults(run=...)` returns the exit code.
-_COMMANDS = ("jaxlens._cli_render", "jaxlens._cli_animate")
+_COMMANDS = ("jaxlens._cli_render", "jaxlens._cli_animate", "jaxlens._cli_clean")
 _OPTIONAL = ("jaxlens._cli_fit",)
 
 

@@ -146,6 +146,43 @@ def _patch_image_output(monkeypatch, write_image, error=""):
     monkeypatch.setattr(oiio, "ImageOutput", Patched)
 
 
+def test_temporaries_of_killed_processes_are_found_and_removed(tmp_path, capsys):
+    import subprocess
+
+    from jaxlens import _io, cli
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a process that no longer runs
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        host = _io._host()
+        names = {
+            "killed": f".out{_io._TMP_TAG}{host}.{dead.pid}.abcd1234.png",
+            "other_output": f".other{_io._TMP_TAG}{host}.{dead.pid}.abcd1234.png",
+            "running": f".out{_io._TMP_TAG}{host}.{alive.pid}.abcd1234.png",
+            "other_host": f".out{_io._TMP_TAG}elsewhere.{dead.pid}.abcd1234.png",
+            "not_ours": ".out.abcd1234.png",
+        }
+        for name in names.values():
+            (tmp_path / name).write_bytes(b"partial")
+        # Writing out.png removes its own stale temporary only.
+        write_image(tmp_path / "out.png", _image())
+        left = set(os.listdir(tmp_path))
+        assert names["killed"] not in left and "out.png" in left
+        assert {names[k] for k in ("other_output", "running", "other_host", "not_ours")} <= left
+        # `jaxlens clean` removes the other output's; a dry run lists it first.
+        assert cli.main(["clean", "--dry-run", str(tmp_path)]) == 0
+        assert "would remove" in capsys.readouterr().out and names["other_output"] in left
+        assert cli.main(["clean", str(tmp_path)]) == 0
+        assert names["other_output"] in capsys.readouterr().out
+        left = set(os.listdir(tmp_path))
+        assert names["other_output"] not in left
+        assert {names[k] for k in ("running", "other_host", "not_ours")} <= left
+    finally:
+        alive.kill()
+        alive.wait()
+
+
 def test_write_is_atomic_on_failure(tmp_path, monkeypatch):
     target = tmp_path / "out.exr"
     target.write_bytes(b"previous")
