@@ -8,12 +8,6 @@ the notebook widgets until a name that needs them is used.
 """
 
 import importlib
-import importlib.metadata
-
-try:
-    __version__ = importlib.metadata.version("jaxlens")
-except importlib.metadata.PackageNotFoundError:  # pragma: no cover
-    __version__ = "0.0.0"
 
 # Each public name and the private module that defines it.
 _MODULES = {
@@ -180,7 +174,21 @@ _WHERE = {name: module for module, names in _MODULES.items() for name in names}
 __all__ = sorted(_WHERE)
 
 
+def _version() -> str:
+    # On first use: `importlib.metadata` alone takes ~70 ms to import, a third of
+    # `jaxlens --help`, and is the window in which a signal meets no handler.
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("jaxlens")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+        return "0.0.0"
+
+
 def __getattr__(name):
+    if name == "__version__":
+        globals()[name] = value = _version()
+        return value
     module = _WHERE.get(name)
     if module is None:
         raise AttributeError(f"module 'jaxlens' has no attribute {name!r}")

@@ -15,7 +15,7 @@ def register(sub):
     )
     p.add_argument("folders", nargs="*", default=["."], help="folders to clean (default .)")
     p.add_argument("-n", "--dry-run", action="store_true", help="list, do not remove")
-    p.set_defaults(run=_run)
+    p.set_defaults(run=_run, uses_jax=False)
 
 
 def _run(args) -> int:

@@ -69,13 +69,24 @@ def _configure_cache():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+class _Version(argparse.Action):
+    """`--version`, looked up only when asked (the package metadata is slow to load)."""
 
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest=argparse.SUPPRESS, nargs=0, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from . import __version__
+
+        print(f"jaxlens {__version__}")
+        parser.exit(0)
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="jaxlens", description="Gravitational lensing by a Schwarzschild black hole."
     )
-    parser.add_argument("--version", action="version", version=f"jaxlens {__version__}")
+    parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
     for name in _COMMANDS:
         importlib.import_module(name).register(sub)
@@ -112,15 +123,36 @@ def _redeliver(unraisable, hook=sys.unraisablehook):
     hook(unraisable)
 
 
+def _exit_at_once(signum, frame, command="jaxlens"):
+    """Handler while JAX loads: its native modules run Python code (enum classes, for
+    one) where an exception cannot pass (the process aborts), so nothing is raised:
+    the one line is printed and the process ends. Nothing is written yet."""
+    word = "interrupted" if signum == signal.SIGINT else "terminated"
+    print(f"{command}: {word}", file=sys.stderr, flush=True)
+    os._exit(128 + signum)
+
+
+def _set_handlers(handlers: dict) -> dict:
+    """Install signal handlers (where this is the main thread); return the old ones.
+    A signal that is ignored (`nohup`, a background job) stays ignored."""
+    old = {}
+    for sig, handler in handlers.items():
+        try:
+            current = signal.getsignal(sig)
+            if current is not signal.SIG_IGN:
+                signal.signal(sig, handler)
+                old[sig] = current
+        except ValueError:  # not the main thread
+            break
+    return old
+
+
 def main(argv=None) -> int:
     # The handlers hold from the start: a signal while JAX loads (the first seconds)
-    # ends the command with its one line too, not a traceback.
+    # ends the command with its one line too, not a traceback or an abort.
     command = "jaxlens"
-    previous = signal.getsignal(signal.SIGTERM)
-    try:
-        signal.signal(signal.SIGTERM, _terminate)
-    except ValueError:  # not the main thread
-        previous = None
+    at_once = functools.partial(_exit_at_once, command=command)
+    previous = _set_handlers({signal.SIGINT: at_once, signal.SIGTERM: at_once})
     hook, sys.unraisablehook = (
         sys.unraisablehook,
         functools.partial(_redeliver, hook=sys.unraisablehook),
@@ -128,7 +160,16 @@ def main(argv=None) -> int:
     try:
         args = build_parser().parse_args(argv)
         command = f"jaxlens {args.command}"
+        at_once.keywords["command"] = command
+        if getattr(args, "uses_jax", True):
+            import jax  # noqa: F401  (under the handler above)
         _configure_cache()
+        # From here an interrupt unwinds (temporary files are removed on the way).
+        sigint = previous.get(signal.SIGINT)
+        _set_handlers({
+            signal.SIGINT: sigint if callable(sigint) else signal.default_int_handler,
+            signal.SIGTERM: _terminate,
+        })  # fmt: skip
         return int(args.run(args) or 0)
     except (UsageError, ValueError, OSError) as e:
         print(f"{command}: error: {one_line(e)}", file=sys.stderr)
@@ -141,8 +182,7 @@ def main(argv=None) -> int:
         return int(e.code)
     finally:
         sys.unraisablehook = hook
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        _set_handlers(previous)
 
 
 if __name__ == "__main__":

@@ -243,12 +243,18 @@ def test_signals_while_jax_loads_or_compiles(tmp_path, signame, code, word):
     import time
 
     out = tmp_path / "o.png"
-    for delay in (0.3, 1.5):  # importing JAX, then compiling
-        p = subprocess.Popen(
-            [sys.executable, "-m", "jaxlens", "render", "-o", str(out)],
-            stderr=subprocess.PIPE, text=True, env=dict(os.environ, JAXLENS_CACHE_DIR=""),
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-        )  # fmt: skip
+    # Importing JAX (its native modules run Python code where an exception aborts the
+    # process: a Ctrl-C there ended in `terminate called ...`), then compiling.
+    for delay in (0.1, 0.3, 0.5, 0.8, 1.5):
+        # Python's own Ctrl-C handler in the child (a background job inherits SIGINT
+        # ignored), set in the child itself: a pre-exec function would fork this
+        # multithreaded process.
+        code_ = ("import runpy, signal, sys;"
+                 " signal.signal(signal.SIGINT, signal.default_int_handler);"
+                 f" sys.argv = ['jaxlens', 'render', '-o', {str(out)!r}];"
+                 " runpy.run_module('jaxlens', run_name='__main__')")  # fmt: skip
+        p = subprocess.Popen([sys.executable, "-c", code_], stderr=subprocess.PIPE, text=True,
+                             env=dict(os.environ, JAXLENS_CACHE_DIR=""))  # fmt: skip
         time.sleep(delay)
         p.send_signal(getattr(signal, signame))
         err = p.communicate(timeout=120)[1]
