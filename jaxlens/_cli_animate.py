@@ -1,5 +1,6 @@
-"""`jaxlens animate`: a frame sequence and an animated GIF or an MP4 video of a camera
-path (approach, orbit, pan, zoom), all frames rendered in batched compiled calls."""
+"""`jaxlens animate`: an animated GIF or an MP4 video of a camera path (approach, orbit,
+pan, zoom), and optionally its frames as image files. Frames are rendered in batched
+compiled calls of one size and streamed to the files as they come."""
 
 import math
 import time
@@ -18,11 +19,13 @@ def register(sub):
     p = sub.add_parser(
         "animate",
         help="render an animation (frames and a GIF or MP4) of a camera path",
-        description="Render the frames of a camera path and write them as a sequence and an "
-        "animated GIF (-o NAME.gif) or an H.264 MP4 video (-o NAME.mp4, needs PyAV: pip "
-        "install 'jaxlens[video]'). Paths: approach (distance, R_S, geometric steps), "
-        "orbit (camera position around the hole, degrees), pan (yaw, degrees), zoom (FOV, "
-        "degrees, geometric). Options override the scene file's [animation] table.",
+        description="Render the frames of a camera path into an animated GIF (-o NAME.gif) "
+        "or an H.264 MP4 video (-o NAME.mp4, needs PyAV: pip install 'jaxlens[video]'), "
+        "and, with --frames-dir, as image files too. Frames are rendered in groups and "
+        "written as they come: memory holds one group, not the animation. Paths: approach "
+        "(distance, R_S, geometric steps), orbit (camera position around the hole, "
+        "degrees), pan (yaw, degrees), zoom (FOV, degrees, geometric). Options override "
+        "the scene file's [animation] table.",
     )
     add_scene_options(p, size_default="480x270", supersample_default=2)
     p.add_argument("--path", choices=ANIMATION_PATHS, help="camera path (default approach)")
@@ -30,8 +33,9 @@ def register(sub):
     p.add_argument("--start", type=float, help="first value of the path (see above)")
     p.add_argument("--stop", type=float, help="last value of the path")
     p.add_argument("--fps", type=float, help="frames a second of the GIF or MP4 (default 12)")
-    p.add_argument("--frames-dir", help="folder for the frames (default: OUTPUT without its "
-                   "extension, plus _frames)")  # fmt: skip
+    p.add_argument("--frames-dir", help="also write each frame as an image file into this "
+                   "folder (made if missing; frame_0000.png, ...; earlier frame_*.* files "
+                   "there are replaced)")  # fmt: skip
     p.add_argument("--frame-format", choices=FRAME_FORMATS, default="png",
                    help="file format of the frames (default png)")  # fmt: skip
     p.set_defaults(run=run)
@@ -86,29 +90,65 @@ def run(args):
     fps = anim["fps"] if args.fps is None else args.fps
     _io.check_fps(fps, video)  # before rendering: a rate the file format can store
     _check(kind, start, stop)
-    _io.check_render_memory(scene["camera"]["width"], scene["camera"]["height"], frames)
-    frames_dir = Path(args.frames_dir) if args.frames_dir else out.with_name(out.stem + "_frames")
-    if not frames_dir.parent.is_dir():
-        raise ValueError(f"frames folder {str(frames_dir)!r}: {str(frames_dir.parent)!r} does "
-                         "not exist")  # fmt: skip
-    if frames_dir.exists() and not frames_dir.is_dir():
-        raise ValueError(f"frames folder {str(frames_dir)!r} exists and is not a folder")
+    width, height = scene["camera"]["width"], scene["camera"]["height"]
+    group = frames_per_call(width, height, frames)
+    _io.check_render_memory(width, height, group)
+    frames_dir = None if args.frames_dir is None else _check_frames_dir(Path(args.frames_dir))
 
     base = jl.Scene.from_validated(scene, dtype=pixel_dtype(args, scene))
     values = path_values(kind, start, stop, frames)
     step = {"approach": jl.approach, "orbit": jl.orbit, "pan": jl.pan, "zoom": jl.zoom}[kind]
-    cameras = step(base.camera, values if kind == "approach" else np.radians(values))
-    t = time.perf_counter()
-    images = jl.render(base.replace(camera=cameras))
     exposure = base.exposure
-    frames_dir.mkdir(exist_ok=True)
-    _io.check_output_path(frames_dir / f"frame_0000.{args.frame_format}")
-    for i, img in enumerate(images):
-        _io.write_image(frames_dir / f"frame_{i:04d}.{args.frame_format}", img, exposure=exposure)
+
+    def rendered():
+        # Frames in groups of the same size (the last padded with its final value), so
+        # one compiled program serves them all and only a group is in memory.
+        for lo in range(0, frames, group):
+            part = values[lo : lo + group]
+            padded = np.concatenate([part, np.repeat(part[-1:], group - len(part))])
+            cameras = step(base.camera, padded if kind == "approach" else np.radians(padded))
+            images = jl.render(base.replace(camera=cameras), progress=False)
+            yield from np.asarray(images)[: len(part)]
+
+    from tqdm.auto import tqdm
+
+    t = time.perf_counter()
     write = _io.write_video if video else _io.write_gif
-    write(out, images, exposure=exposure, fps=fps)
+    with (
+        _io.frame_folder(frames_dir, args.frame_format) as save,
+        tqdm(total=frames, desc="animate", unit="frame", delay=2.0, leave=False) as bar,
+    ):
+
+        def stream():
+            for i, img in enumerate(rendered()):
+                save(i, img, exposure=exposure)
+                bar.update()
+                yield img
+
+        write(out, stream(), exposure=exposure, fps=fps)
+    where = f" and {frames} frames in {frames_dir}/" if frames_dir is not None else ""
     print(
-        f"wrote {out} and {len(images)} frames in {frames_dir}/ ({kind} from {start:g} to "
-        f"{stop:g}, {time.perf_counter() - t:.1f} s)"
+        f"wrote {out}{where} ({kind} from {start:g} to {stop:g}, {time.perf_counter() - t:.1f} s)"
     )
     return 0
+
+
+# Frames rendered in one call: as many as fit in this many bytes of float32 RGB.
+GROUP_BYTES = 256 << 20
+
+
+def frames_per_call(width: int, height: int, frames: int) -> int:
+    """How many frames one render call makes: up to `GROUP_BYTES` of output, at least 1,
+    at most `frames`, spread evenly (24 frames in groups of 8, not 10 + 10 + 4)."""
+    most = max(1, min(frames, GROUP_BYTES // (width * height * 3 * 4)))
+    calls = -(-frames // most)
+    return -(-frames // calls)
+
+
+def _check_frames_dir(folder: Path) -> Path:
+    if not folder.parent.is_dir():
+        raise ValueError(f"frames folder {str(folder)!r}: {str(folder.parent)!r} does "
+                         "not exist")  # fmt: skip
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"frames folder {str(folder)!r} exists and is not a folder")
+    return folder

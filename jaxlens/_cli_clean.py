@@ -19,7 +19,7 @@ def register(sub):
 
 
 def _run(args) -> int:
-    from ._io import stale_temporaries
+    from ._io import remove_temporary, stale_temporaries
 
     for folder in args.folders:
         if not Path(folder).is_dir():
@@ -28,7 +28,7 @@ def _run(args) -> int:
     for folder in args.folders:
         for path in stale_temporaries(folder):
             if not args.dry_run:
-                path.unlink(missing_ok=True)
+                remove_temporary(path)
             print(f"{'would remove' if args.dry_run else 'removed'} {path}")
             count += 1
     if count == 0:

@@ -90,9 +90,8 @@ def register(sub):
         help="the star's Gaussian width in degrees, when known (fitted otherwise)",
     )
     scale = p.add_mutually_exclusive_group()
-    scale.add_argument(
-        "--mass", type=str, default=None, help="mass of the hole in solar masses: D in metres"
-    )
+    scale.add_argument("--mass-msun", "--mass", dest="mass", metavar="MSUN", type=str,
+                       help="mass of the hole in solar masses: D in metres")  # fmt: skip
     scale.add_argument(
         "--distance-m", type=str, default=None, help="camera distance in metres: the mass"
     )
@@ -107,7 +106,7 @@ def run(args):
         if not sigma_deg < 180.0:
             raise ValueError(f"--star-sigma-deg {args.star_sigma_deg} must be below 180")
         sigma = math.radians(sigma_deg)
-    mass = _positive("--mass")(args.mass) if args.mass is not None else None
+    mass = _positive("--mass-msun")(args.mass) if args.mass is not None else None
     dist_m = _positive("--distance-m")(args.distance_m) if args.distance_m is not None else None
 
     from ._camera import Camera

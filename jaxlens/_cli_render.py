@@ -59,7 +59,10 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
                    "valid values, and exit")  # fmt: skip
     p.add_argument("-o", "--output", required=True, help="output file")
     p.add_argument("--distance", type=float, help="camera distance, units of R_S (default 20)")
-    p.add_argument("--fov", type=float, help="horizontal field of view, degrees (default 60)")
+    # Degrees are named in the option (as in the scene file's keys); R_S and radians,
+    # the library's own units, are not. The short old names stay as aliases.
+    p.add_argument("--fov-deg", "--fov", dest="fov", metavar="DEG", type=float,
+                   help="horizontal field of view, degrees (default 60)")  # fmt: skip
     p.add_argument("--size", help=f"WxH in pixels (default {size_default})")
     p.add_argument("--sky", help=f"{SKY_CHOICES} (default: default, a procedural sky and a star)")
     p.add_argument(
@@ -72,9 +75,10 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
     p.add_argument("--sampling", choices=("uniform", "gauss"), help="uniform: k x k point "
                    "samples a pixel (default); gauss: area-exact Gauss-Legendre cells")  # fmt: skip
     p.add_argument("--exposure", type=float, help="exposure in stops, PNG/JPEG (default 0)")
-    p.add_argument("--yaw", type=float, help="view turned right, degrees")
-    p.add_argument("--pitch", type=float, help="view turned up, degrees")
-    p.add_argument("--roll", type=float, help="view turned about the line of sight, degrees")
+    for name, what in (("yaw", "view turned right"), ("pitch", "view turned up"),
+                       ("roll", "view turned about the line of sight")):  # fmt: skip
+        p.add_argument(f"--{name}-deg", f"--{name}", dest=name, metavar="DEG", type=float,
+                       help=f"{what}, degrees")  # fmt: skip
     p.add_argument("--accuracy", type=float, help="ray-map accuracy, radians (default 1e-8)")
     p.add_argument(
         "--float64", action="store_true", help="compute pixels in float64 (default float32)"
@@ -85,14 +89,14 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
 def scene_dict(args) -> dict:
     """The validated scene: the file (if any), then the command-line options over it."""
     _finite("--distance", args.distance, "a finite number > 1 (units of R_S)", lambda v: v > 1)
-    _finite("--fov", args.fov, "a number in (0, 180) degrees", lambda v: 0 < v < 180)
+    _finite("--fov-deg", args.fov, "a number in (0, 180) degrees", lambda v: 0 < v < 180)
     _finite("--star-sigma-deg", args.star_sigma_deg, "a number in (0, 180) degrees",
             lambda v: 0 < v < 180)  # fmt: skip
     _finite("--star-brightness", args.star_brightness, "a finite number")
     _finite("--floor", args.floor, "a finite number")
     _finite("--exposure", args.exposure, "a finite number of stops")
     for flag in ("yaw", "pitch", "roll"):
-        _finite(f"--{flag}", getattr(args, flag), "a finite number of degrees")
+        _finite(f"--{flag}-deg", getattr(args, flag), "a finite number of degrees")
     _finite("--accuracy", args.accuracy, "a number in (0, 0.1) radians", lambda v: 0 < v < 0.1)
     if args.supersample is not None and not 1 <= args.supersample <= 64:
         raise ValueError(f"--supersample {args.supersample} is not valid: expected 1 to 64")

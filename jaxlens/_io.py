@@ -1,4 +1,4 @@
-"""Image files through OpenImageIO, animated GIFs through Pillow and MP4 videos through
+"""Image files and animated GIFs through OpenImageIO, MP4 videos through
 PyAV (the optional `video` extra): plain Python at the edges, never jitted.
 
 Every file is written atomically: to a hidden temporary file in the destination
@@ -14,8 +14,11 @@ import contextlib
 import fractions
 import glob
 import io
+import itertools
 import math
 import os
+import re
+import shutil
 import socket
 import tempfile
 from pathlib import Path
@@ -180,6 +183,15 @@ def stale_temporaries(folder, stem: str | None = None) -> list[Path]:
     return sorted(out)
 
 
+def remove_temporary(path: Path) -> None:
+    """Remove a temporary file, or a temporary folder of frames, quietly."""
+    with contextlib.suppress(OSError):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+
+
 @contextlib.contextmanager
 def atomic_output(path):
     """Context manager: yields a temporary path beside `path`; on a normal exit it
@@ -187,8 +199,7 @@ def atomic_output(path):
     Temporaries of `path` left by killed processes are removed first."""
     path = Path(path)
     for stale in stale_temporaries(path.parent, path.stem):
-        with contextlib.suppress(OSError):
-            stale.unlink()
+        remove_temporary(stale)
     prefix = f".{path.stem}{_TMP_TAG}{_host()}.{os.getpid()}."
     fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=path.suffix, dir=path.parent)
     os.close(fd)
@@ -293,29 +304,127 @@ def check_fps(fps, video: bool) -> None:
                          f"[{lo:.4g}, {hi:g}] frames a second")  # fmt: skip
 
 
-def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: int = 0) -> Path:
-    """Write an animated GIF of linear frames (Pillow), atomically.
+_FRAME_NAME = re.compile(r"frame_[0-9]{4,}\.(png|jpg|exr|hdr)")
 
-    **Arguments:** `path` (.gif); `frames`: `(N, H, W, 3)` linear radiance; `exposure`
-    (stops); `fps`: frames a second; `loop`: 0 loops forever.
 
-    **Returns:** the path written.
+@contextlib.contextmanager
+def frame_folder(folder, fmt: str = "png"):
+    """Context manager for an animation's frame files: yields `save(i, image, *,
+    exposure)`. Frames go to a hidden folder inside `folder` and are moved in only when
+    the block ends normally, replacing the `frame_NNNN.*` files of an earlier run (none
+    of theirs is left beside the new ones); on any exception, Ctrl-C included, the new
+    frames are removed and `folder` is as it was. `folder=None`: `save` does nothing.
     """
-    from PIL import Image
+    if folder is None:
+        yield lambda i, image, *, exposure=0.0: None
+        return
+    folder = Path(folder)
+    made = not folder.exists()
+    folder.mkdir(exist_ok=True)
+    staging = None
+    try:
+        check_output_path(folder / f"frame_0000.{fmt}")
+        for stale in stale_temporaries(folder, "frames"):
+            remove_temporary(stale)
+        prefix = f".frames{_TMP_TAG}{_host()}.{os.getpid()}."
+        staging = Path(tempfile.mkdtemp(prefix=prefix, dir=folder))
+        names = []
 
+        def save(i, image, *, exposure=0.0):
+            names.append(f"frame_{i:04d}.{fmt}")
+            write_image(staging / names[-1], image, exposure=exposure)
+
+        yield save
+        for name in names:
+            os.replace(staging / name, folder / name)
+        keep = set(names)
+        for old in folder.iterdir():
+            if _FRAME_NAME.fullmatch(old.name) and old.name not in keep:
+                old.unlink(missing_ok=True)
+        made = False
+    finally:
+        if staging is not None:
+            remove_temporary(staging)
+        if made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+
+
+def _frames_iter(frames):
+    """`frames` as (first frame, iterator over all frames): an `(N, H, W, 3)` array or
+    any iterable of `(H, W, 3)` frames (a generator streams them: a long animation
+    need not be in memory). Raises `ValueError` for no frame."""
+    if hasattr(frames, "shape") and hasattr(frames, "dtype"):
+        arr = np.asarray(frames)
+        if arr.ndim != 4 or arr.shape[0] < 1:
+            raise ValueError(f"frames of shape {arr.shape} are not (N, H, W, 3) with N >= 1")
+        frames = iter(arr)
+    else:
+        frames = iter(frames)
+    try:
+        first = next(frames)
+    except StopIteration:
+        raise ValueError("no frames to write") from None
+    return first, itertools.chain([first], frames)
+
+
+def _check_frame(frame, shape=None) -> np.ndarray:
+    f = np.asarray(frame)
+    if not np.issubdtype(f.dtype, np.number) or np.iscomplexobj(f):
+        raise ValueError(f"frames of dtype {f.dtype} are not real numbers")
+    if f.ndim != 3 or f.shape[-1] != 3 or min(f.shape) < 1:
+        raise ValueError(f"a frame of shape {f.shape} is not (H, W, 3) with H, W >= 1")
+    if shape is not None and f.shape != shape:
+        raise ValueError(f"a frame of shape {f.shape} differs from the first, {shape}")
+    return f
+
+
+def _gif_delay(fps: float) -> int:
+    """A GIF frame's time in centiseconds (what the format stores), at least 2: browsers
+    show shorter delays as 0.1 s."""
+    return max(int(round(100.0 / fps)), 2)
+
+
+def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: int = 0) -> Path:
+    """Write an animated GIF of linear frames (OpenImageIO), atomically, one frame at a
+    time: a generator of frames is written as it yields, never held in memory whole.
+
+    Each frame gets the exposure ($2^{exposure}$), the sRGB transfer and 8 bits, then
+    its own 256-colour palette.
+
+    **Arguments:** `path` (.gif); `frames`: `(N, H, W, 3)` linear radiance, or an
+    iterable of `(H, W, 3)` frames; `exposure` (stops); `fps`: frames a second
+    (GIF keeps a frame's time in whole centiseconds, at least 2); `loop`: 0 loops
+    forever, else the number of plays.
+
+    **Returns:** the path written. Raises `ValueError` for an unusable path, frames,
+    exposure or fps. Never leaves a half-written file, also when interrupted.
+    """
     path = check_output_path(path)
     if path.suffix.lower() != ".gif":
         raise ValueError(f"{str(path)!r} is not a .gif file name")
-    frames = np.asarray(frames, np.float32)
-    if frames.ndim != 4 or frames.shape[0] < 1 or frames.shape[-1] != 3:
-        raise ValueError(f"frames of shape {frames.shape} are not (N, H, W, 3)")
+    if not math.isfinite(exposure):
+        raise ValueError(f"exposure={exposure!r} must be finite (stops)")
     check_fps(fps, video=False)
-    images = [Image.fromarray(to_display(f, exposure=exposure)).quantize(256) for f in frames]
+    first, frames = _frames_iter(frames)
+    shape = _check_frame(first).shape
+    oiio = _oiio()
     with atomic_output(path) as tmp:
-        images[0].save(
-            tmp, format="GIF", save_all=True, append_images=images[1:],
-            duration=max(int(round(1000.0 / fps)), 20), loop=loop, disposal=1,
-        )  # fmt: skip
+        out = oiio.ImageOutput.create(tmp)
+        spec = oiio.ImageSpec(shape[1], shape[0], 3, oiio.UINT8)
+        spec.attribute("FramesPerSecond", oiio.TypeDesc("rational"), (100, _gif_delay(fps)))
+        spec.attribute("gif:LoopCount", int(loop))
+        mode = "create"
+        try:
+            for frame in frames:
+                if not out.open(tmp, spec, mode):
+                    raise OSError(f"cannot write {str(path)!r}: {out.geterror()}")
+                mode = "AppendSubimage"
+                img = to_display(_check_frame(frame, shape), exposure=exposure)
+                if not out.write_image(np.ascontiguousarray(img)):
+                    raise OSError(f"cannot write {str(path)!r}: {out.geterror()}")
+        finally:
+            out.close()
     return path
 
 
@@ -361,8 +470,9 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
     (`pip install 'jaxlens[video]'`); without it this raises `MissingExtraError`
     (an `ImportError` and a `ValueError`) saying so.
 
-    **Arguments:** `path` (.mp4); `frames`: `(N, H, W, 3)` linear radiance; `exposure`
-    (stops); `fps`: frames a second, 0.001 to 1000 (kept as a fraction with a
+    **Arguments:** `path` (.mp4); `frames`: `(N, H, W, 3)` linear radiance, or an
+    iterable of `(H, W, 3)` frames, encoded as they come (a generator streams them);
+    `exposure` (stops); `fps`: frames a second, 0.001 to 1000 (kept as a fraction with a
     denominator up to 1001: 29.97 is 2997/100).
 
     **Returns:** the path written. Raises `ValueError` for an unusable path, frames,
@@ -371,17 +481,13 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
     path = check_output_path(path)
     if path.suffix.lower() != ".mp4":
         raise ValueError(f"{str(path)!r} is not a .mp4 file name")
-    frames = np.asarray(frames)
-    if frames.ndim != 4 or frames.shape[-1] != 3 or min(frames.shape[:3]) < 1:
-        raise ValueError(f"frames of shape {frames.shape} are not (N, H, W, 3) with N, H, W >= 1")
-    if not np.issubdtype(frames.dtype, np.number) or np.iscomplexobj(frames):
-        raise ValueError(f"frames of dtype {frames.dtype} are not real numbers")
     if not math.isfinite(exposure):
         raise ValueError(f"exposure={exposure!r} must be finite (stops)")
     check_fps(fps, video=True)
+    first, frames = _frames_iter(frames)
+    h, w, _ = shape = _check_frame(first).shape
     av = _av()
     codec = _video_codec(av)
-    n, h, w, _ = frames.shape
     pad = ((0, h % 2), (0, w % 2), (0, 0))
     rate = fractions.Fraction(fps).limit_denominator(1001)
     with atomic_output(path) as tmp:
@@ -396,8 +502,9 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
             cc.color_range = 1  # limited ("MPEG", 16-235)
             if codec == "mpeg4":
                 cc.bit_rate = 100_000_000  # a cap only: the fixed quantiser decides
-            for i in range(n):
-                rgb = np.pad(to_display(frames[i], exposure=exposure), pad, mode="edge")
+            for i, f in enumerate(frames):
+                rgb = np.pad(to_display(_check_frame(f, shape), exposure=exposure), pad,
+                             mode="edge")  # fmt: skip
                 frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
                 frame = frame.reformat(format="yuv420p", dst_colorspace="itu709",
                                        dst_color_range="MPEG")  # fmt: skip

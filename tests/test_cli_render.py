@@ -24,6 +24,18 @@ def run(args, capsys):
     return code, out.out, out.err
 
 
+def test_options_in_degrees_are_named_so_and_the_old_names_stay(tmp_path, capsys):
+    base = ["render", "--sky", "star", "--size", "12x8", "--supersample", "1"]
+    files = []
+    for names in (["--fov-deg", "--yaw-deg", "--roll-deg"], ["--fov", "--yaw", "--roll"]):
+        files.append(tmp_path / f"{len(files)}.exr")
+        args = [names[0], "70", names[1], "3", names[2], "10", "-o", str(files[-1])]
+        assert run([*base, *args], capsys)[0] == 0
+    np.testing.assert_array_equal(read_image(files[0]), read_image(files[1]))
+    help_text = cli.build_parser()._subparsers._group_actions[0].choices["render"].format_help()
+    assert "--fov-deg DEG, --fov DEG" in help_text and "--pitch-deg DEG" in help_text
+
+
 def test_render_star_exr(tmp_path, capsys):
     out = tmp_path / "x.exr"
     args = ["--sky", "star", "--size", "48x32", "--supersample", "2", "--distance", "10"]
@@ -137,9 +149,9 @@ BAD = [
     (["--distance", "-3"], "--distance -3.0"),
     (["--distance", "nan"], "--distance nan"),
     (["--distance", "inf"], "--distance inf"),
-    (["--fov", "0"], "--fov 0.0"),
-    (["--fov", "180"], "--fov 180.0"),
-    (["--fov", "-10"], "--fov -10.0"),
+    (["--fov", "0"], "--fov-deg 0.0"),
+    (["--fov", "180"], "--fov-deg 180.0"),
+    (["--fov", "-10"], "--fov-deg -10.0"),
     (["--size", "0x10"], "--size '0x10'"),
     (["--size=-4x4"], "--size '-4x4'"),
     (["--size", "10"], "--size '10'"),
@@ -267,14 +279,67 @@ def test_animate_writes_frames_and_gif(tmp_path, capsys):
     args = ["--sky", "checker", "--size", "16x12", "--frames", "3", "--path", "orbit"]
     code, stdout, err = run(["animate", *args, "--supersample", "1", "-o", str(out)], capsys)
     assert code == 0, err
+    assert os.listdir(tmp_path) == ["orbit.gif"]  # frame files only when asked for
     with Image.open(out) as im:
         assert im.n_frames == 3 and im.size == (16, 12)
-    frames = sorted(os.listdir(tmp_path / "orbit_frames"))
+    frames_dir = tmp_path / "frames"
+    code, stdout, err = run(["animate", *args, "--supersample", "1", "-o", str(out),
+                             "--frames-dir", str(frames_dir)], capsys)  # fmt: skip
+    assert code == 0 and f"3 frames in {frames_dir}/" in stdout, err
+    frames = sorted(os.listdir(frames_dir))
     assert frames == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
     # An orbit turns the sky: the frames differ.
-    a = np.asarray(Image.open(tmp_path / "orbit_frames" / frames[0]))
-    b = np.asarray(Image.open(tmp_path / "orbit_frames" / frames[1]))
+    a = np.asarray(Image.open(frames_dir / frames[0]))
+    b = np.asarray(Image.open(frames_dir / frames[1]))
     assert np.abs(a.astype(int) - b).max() > 50
+
+
+def test_animate_streams_groups_of_frames_and_replaces_or_keeps_a_frames_folder(
+    tmp_path, capsys, monkeypatch
+):
+    import jaxlens._cli_animate as anim
+
+    # 16 x 12 float32 RGB frames, 2304 bytes: groups of two, the last padded.
+    monkeypatch.setattr(anim, "GROUP_BYTES", 5000)
+    assert anim.frames_per_call(16, 12, 5) == 2 and anim.frames_per_call(16, 12, 1) == 1
+    calls, real = [], jl.render
+
+    def counting(scene, **kw):
+        calls.append(np.shape(scene.camera.distance))
+        return real(scene, **kw)
+
+    monkeypatch.setattr(jl, "render", counting)
+    out, frames_dir = tmp_path / "a.gif", tmp_path / "f"
+    base = ["animate", "--sky", "checker", "--size", "16x12", "--supersample", "1",
+            "--start", "30", "--stop", "10", "-o", str(out),
+            "--frames-dir", str(frames_dir)]  # fmt: skip
+    assert run([*base, "--frames", "5"], capsys)[0] == 0
+    assert calls == [(2,), (2,), (2,)]
+    first = {n: (frames_dir / n).read_bytes() for n in sorted(os.listdir(frames_dir))}
+    assert list(first) == [f"frame_000{i}.png" for i in range(5)]
+    with Image.open(out) as im:
+        assert im.n_frames == 5
+
+    # Interrupted on its second group: no GIF, and the folder as it was.
+    gif = out.read_bytes()
+
+    def interrupted(scene, **kw):
+        calls.append(None)
+        if calls.count(None) == 2:
+            raise KeyboardInterrupt
+        return real(scene, **kw)
+
+    monkeypatch.setattr(jl, "render", interrupted)
+    code, _, err = run([*base, "--frames", "4", "--start", "20"], capsys)
+    assert code == 130 and "interrupted" in err
+    assert out.read_bytes() == gif and sorted(os.listdir(tmp_path)) == ["a.gif", "f"]
+    assert {n: (frames_dir / n).read_bytes() for n in os.listdir(frames_dir)} == first
+
+    # A rerun with fewer frames replaces them all: none of the earlier five is left.
+    monkeypatch.setattr(jl, "render", real)
+    assert run([*base, "--frames", "3", "--start", "20"], capsys)[0] == 0
+    assert sorted(os.listdir(frames_dir)) == [f"frame_000{i}.png" for i in range(3)]
+    assert (frames_dir / "frame_0000.png").read_bytes() != first["frame_0000.png"]
 
 
 def test_animate_writes_frames_and_mp4(tmp_path, capsys):
@@ -282,7 +347,8 @@ def test_animate_writes_frames_and_mp4(tmp_path, capsys):
     out = tmp_path / "orbit.mp4"
     args = ["--sky", "default", "--size", "32x24", "--frames", "3", "--path", "orbit",
             "--start", "0", "--stop", "60", "--fps", "6", "--supersample", "1"]  # fmt: skip
-    code, stdout, err = run(["animate", *args, "-o", str(out)], capsys)
+    code, stdout, err = run(["animate", *args, "-o", str(out), "--frames-dir",
+                             str(tmp_path / "orbit_frames")], capsys)  # fmt: skip
     assert code == 0, err
     assert f"wrote {out}" in stdout
     assert sorted(os.listdir(tmp_path)) == ["orbit.mp4", "orbit_frames"]

@@ -262,10 +262,37 @@ def test_gif_animation(tmp_path):
     p = write_gif(tmp_path / "a.gif", frames, fps=10)
     with Image.open(p) as im:
         assert im.n_frames == 4 and im.size == (14, 10)
-        assert im.info["duration"] == 100
+        assert im.info["duration"] == 100 and im.info["loop"] == 0
+        for i in range(4):  # each frame its own palette: close to the 8-bit sRGB frame
+            im.seek(i)
+            got = np.asarray(im.convert("RGB"), np.float32)
+            assert np.abs(got - to_display(frames[i])).mean() < 12
     assert sorted(os.listdir(tmp_path)) == ["a.gif"]
     with pytest.raises(ValueError, match="not a .gif"):
         write_gif(tmp_path / "a.png", frames)
+    with pytest.raises(ValueError, match="no frames"):
+        write_gif(tmp_path / "b.gif", iter([]))
+
+
+@pytest.mark.parametrize("name", ["a.gif", "a.mp4"])
+def test_animations_stream_from_a_generator(tmp_path, name):
+    # A generator is written frame by frame (a long animation never in memory whole):
+    # the same file as from the stacked array; a bad frame midway leaves no file.
+    write = write_gif if name.endswith(".gif") else write_video
+    frames = _smooth_frames(5, 16, 24)
+    seen = []
+
+    def gen():
+        for f in frames:
+            seen.append(len(seen))
+            yield f
+
+    a, b = write(tmp_path / name, frames, fps=8), write(tmp_path / f"g{name}", gen(), fps=8)
+    assert a.read_bytes() == b.read_bytes() and seen == [0, 1, 2, 3, 4]
+    bad = (f if i < 3 else f[:8] for i, f in enumerate(frames))
+    with pytest.raises(ValueError, match="differs from the first"):
+        write(tmp_path / f"bad{name}", bad)
+    assert sorted(os.listdir(tmp_path)) == sorted([name, f"g{name}"])
 
 
 def _smooth_frames(n, h, w):
@@ -386,7 +413,7 @@ def test_mp4_bad_input(tmp_path):
     with pytest.raises(ValueError, match="unsupported extension '.avi'"):
         write_video(tmp_path / "a.avi", frames)
     for bad in (frames[0], frames[..., :2], np.zeros((0, 8, 8, 3)), np.zeros((2, 8, 0, 3))):
-        with pytest.raises(ValueError, match=r"not \(N, H, W, 3\)"):
+        with pytest.raises(ValueError, match=r"not \((N, )?H, W, 3\)"):
             write_video(tmp_path / "a.mp4", bad)
     with pytest.raises(ValueError, match="dtype"):
         write_video(tmp_path / "a.mp4", np.full((1, 2, 2, 3), "x"))
