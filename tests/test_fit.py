@@ -281,7 +281,7 @@ def test_recovery_on_rendered_rings(d, fov, sig, floor, given, noise):
         assert abs(got / true - 1) < 0.01
         assert abs(got - true) < 4 * err
     assert fit.noise == pytest.approx(noise, rel=0.1)
-    assert "no pixel noise" not in fit.message
+    assert "no pixel noise" not in fit.message and fit.valid
 
 
 def test_white_noise_is_told_from_structure():
@@ -301,6 +301,16 @@ def test_noiseless_image_is_flagged():
     # A noiseless image: the estimated "noise" is structure, its errors no measurement's.
     fit = fit_ring(rendered(20.0, 60.0, 1.5, 0.1), supersample=K)
     assert "no pixel noise found" in fit.message
+    assert not fit.valid and "FLAGGED" in fit.summary() and fit.to_dict()["valid"] is False
+
+
+def test_a_nuisance_out_of_its_physical_range_is_flagged():
+    # Relativistic rings of negative flux (dark rings inside the bright one): no star
+    # and hole make them, and a fit that needs them is no measurement.
+    img = noisy(modelled(20.0, 60.0, 1.5, 0.1, ring_flux=-4.0), 0.002, seed=7)
+    fit = fit_ring(img, star_sigma=math.radians(1.5), supersample=K)
+    assert fit.ring_flux < 0 and not fit.valid, fit.summary()
+    assert "ring_flux" in fit.message and "is negative" in fit.message
 
 
 @pytest.mark.parametrize("bits", [8, 16])
@@ -480,7 +490,8 @@ def test_cli(tmp_path, capsys, monkeypatch):
     blank = tmp_path / "blank.png"
     write_png(blank, np.full((H, W), 0.25), 8)
     for argv in (["fit", str(blank)], ["fit", str(tmp_path / "none.png")],
-                 ["fit", str(path), "--star-sigma-deg", "-1"]):  # fmt: skip
+                 ["fit", str(path), "--star-sigma-deg", "-1"],
+                 ["fit", str(path), "--mass-msun", "0"]):  # fmt: skip
         assert cli.main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("jaxlens fit: error:") and "\n" not in err

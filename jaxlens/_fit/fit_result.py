@@ -35,7 +35,11 @@ class Fit:
       re-estimated between them).
     - `converged`: the solve succeeded, the curvature is finite and invertible, no
       parameter sits at a bound; `degenerate`: some parameters cannot be separated by
-      the image (named in `message`); `message`: "" when all is well.
+      the image (named in `message`); `message`: "" when all is well, else every check
+      that failed (solver, bounds, degeneracy, residuals against the noise, nuisances
+      out of their physical range, no pixel noise found).
+    - `valid` (property): converged, not degenerate and no message: the values and
+      errors are a measurement. Anything else is a flagged result, not one to report.
     - `variance_inflation`: the largest $1/(1 - R^2)$ over D, FOV (and sigma), $R$
       the multiple correlation of one with the other free parameters (NaN when D or
       FOV is held); above 1e9 the curvature is singular.
@@ -85,6 +89,11 @@ class Fit:
                 return math.degrees(src[base])
         raise AttributeError(name)
 
+    @property
+    def valid(self) -> bool:
+        """Converged, not degenerate, and every check passed (`message` is empty)."""
+        return bool(self.converged and not self.degenerate and not self.message)
+
     def distance_m(self, mass_msun: float) -> tuple[float, float]:
         """Camera distance in metres, and its standard error, for a hole of `mass_msun`."""
         rs = float(schwarzschild_radius_m(mass_msun))
@@ -105,7 +114,8 @@ class Fit:
             if is_angle(name):
                 out[f"{name}_deg"], out[f"{name}_deg_err"] = math.degrees(v), math.degrees(e)
         out.update(
-            converged=self.converged, degenerate=self.degenerate, message=self.message,
+            valid=self.valid, converged=self.converged, degenerate=self.degenerate,
+            message=self.message,
             noise=self.noise, noise_sigma=self.noise_sigma, gain=self.gain,
             chi2_dof=self.chi2_dof, n_pixels=self.n_pixels, block=self.block,
             supersample=self.supersample, result=self.result_name,
@@ -126,6 +136,8 @@ class Fit:
         verdict = "converged" if self.converged else "NOT converged"
         if self.degenerate:
             verdict += ", degenerate"
+        if self.converged and not self.valid:
+            verdict += ", FLAGGED (not a valid measurement)"
         lines.append(
             f"{verdict}; chi2/dof {self.chi2_dof:.3g}; {self.n_pixels} pixels (bins of "
             f"{self.block}), k = {self.supersample}; {self.seconds:.1f} s"

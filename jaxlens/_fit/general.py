@@ -657,6 +657,15 @@ def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data,
         if deg_r:
             degenerate = True
             notes.append(note)
+    # Nuisances outside their physical range: a star's peak radiance and the relativistic
+    # rings' flux factor are not negative; a fit that needs them so describes something
+    # else (seen: the README's ring fitted with a negative ring flux at D = 2.5).
+    for i, n in enumerate(free):
+        base = split_name(n)[0]
+        if base in ("brightness", "ring_flux") and phys[n] < 0.0:
+            what = "a star's brightness" if base == "brightness" else "the rings' flux"
+            notes.append(f"{n} = {phys[n]:.3g} +- {err[i]:.2g} is negative, which {what} "
+                         "cannot be: the model does not describe the image")  # fmt: skip
     if not noise_seen:
         notes.append("no pixel noise found in the image (a noiseless or smoothed one?): the "
                      "errors measure the misfit, not a noise; give the noise level "

@@ -36,6 +36,8 @@ class RingFit(eqx.Module):
       $1/(1 - R^2)$ over D, FOV (and sigma), $R$ the multiple correlation of one with
       the others (above 1e9: degenerate).
     - `message`: human-readable diagnosis ("" when all is well).
+    - `valid` (property): converged, not degenerate and no message: the values and
+      errors are a measurement; anything else is flagged, not one to report.
     - `seconds`: wall time of the fit, compile included.
     - `transfer`: how a file's values were read (`read_observation`): `"srgb"` decoded
       to linear, `"linear"` as stored; `None` for an array.
@@ -70,6 +72,11 @@ class RingFit(eqx.Module):
     seconds: float
     start: tuple
     transfer: str | None = None
+
+    @property
+    def valid(self) -> bool:
+        """Converged, not degenerate, and every check passed (`message` is empty)."""
+        return bool(self.converged and not self.degenerate and not self.message)
 
     @property
     def fov_deg(self) -> float:
@@ -123,6 +130,7 @@ class RingFit(eqx.Module):
             "supersample": self.supersample,
             "num_steps": self.num_steps,
             "result": self.result_name,
+            "valid": self.valid,
             "converged": self.converged,
             "degenerate": self.degenerate,
             "variance_inflation": self.variance_inflation,
@@ -151,7 +159,7 @@ class RingFit(eqx.Module):
         if self.degenerate:
             lines.append(f"DEGENERATE: {self.message}")
         elif self.message:
-            lines.append(self.message)
+            lines.append(f"FLAGGED (not a valid measurement): {self.message}")
         return "\n".join(lines)
 
 
