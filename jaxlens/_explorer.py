@@ -57,7 +57,15 @@ class Explorer:
         self.sky = w.Dropdown(options=SKIES, value="star", description="sky", style=style)
         self.exposure = w.FloatSlider(value=0.0, min=-6.0, max=6.0, step=0.25,
                                       description="exposure (stops)", **kw)  # fmt: skip
-        self.view = w.Image(format="png", width=max(self.width, 320))
+        # Shown at least 320 px wide, at the render's own aspect ratio: both sides fixed
+        # and not stretched to the height of the sliders beside it.
+        shown = max(self.width, 320)
+        px = (shown, max(1, round(self.height * shown / self.width)))
+        self.view = w.Image(
+            format="png", width=px[0], height=px[1],
+            layout=w.Layout(width=f"{px[0]}px", height=f"{px[1]}px", object_fit="contain",
+                            align_self="flex-start", flex="0 0 auto"),
+        )  # fmt: skip
         self.status = w.Label()
         self.controls = (
             self.distance, self.fov, self.star_lon, self.star_lat, self.brightness, self.sigma,
@@ -102,6 +110,8 @@ class Explorer:
         import time
 
         t = time.perf_counter()
+        # Sent to the front end at once: a new sky or size compiles for seconds.
+        self.status.value = "rendering..."
         try:
             camera, sky = self.scene()
             self.image = render(camera, sky, progress=False)

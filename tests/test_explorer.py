@@ -37,6 +37,18 @@ def test_sliders_rerender_the_image():
     )
 
 
+def test_the_image_keeps_its_aspect_ratio_and_says_when_it_renders():
+    # A 240 x 135 render was shown stretched to 320 x 284 beside the sliders.
+    ex = jl.Explorer(48, 27)
+    assert (ex.view.width, ex.view.height) == ("320", "180")  # HTML attributes
+    assert (ex.view.layout.width, ex.view.layout.height) == ("320px", "180px")
+    assert ex.view.layout.align_self == "flex-start"  # not stretched to the sliders' height
+    seen = []
+    ex.status.observe(lambda change: seen.append(change["new"]), names="value")
+    ex.fov.value = 50.0
+    assert seen[0] == "rendering..." and seen[-1].startswith("48x27")
+
+
 def test_bad_setting_is_reported_not_raised():
     ex = jl.Explorer(48, 27)  # the size above: its first render's program is compiled
     ex.distance.min = -1.0  # log10: lets the slider reach D = 0.5, which the camera refuses
