@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-slow install install-test lint bench clean
+.PHONY: demo test test-slow test-min install install-test lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,15 @@ test: install-test
 test-slow: install-test
 	$(BIN)/python -m pytest -n 2 --dist loadfile -m benchmark tests
 
+# The core tests (not the notebooks) against the lowest declared dependency versions,
+# in a separate environment: .ci/min-versions.txt pins them.
+VENV_MIN := .venv-min
+test-min:
+	$(PYTHON) -m venv $(VENV_MIN)
+	$(VENV_MIN)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV_MIN)/bin/python -m pip install --quiet -c .ci/min-versions.txt -e '.[test]'
+	$(VENV_MIN)/bin/python -m pytest -n 2 --dist loadfile -m "not benchmark" tests
+
 lint: install-test
 	$(BIN)/ruff check jaxlens tests benchmarks
 	$(BIN)/ruff format --check jaxlens tests benchmarks
@@ -42,4 +51,4 @@ bench: install-test
 	$(BIN)/python benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) $(VENV_MIN) out

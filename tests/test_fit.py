@@ -106,12 +106,14 @@ def test_einstein_ring_angle_reference_values():
 def test_stored_ring_table_is_the_computed_one():
     # The fit's starting values read a stored table of the ring relation; recomputed
     # from the escape tables it agrees to round-off (a changed closed form or table
-    # setting must regenerate it).
+    # setting must regenerate it). Round-off differs between XLA versions: 2.6e-12
+    # relative with jax 0.8.0 against a table made with 0.10.2; a changed setting moves
+    # the values by far more.
     from jaxlens._fit import starts
 
     stored, computed = starts._ring_table(), starts.compute_ring_table()
     for s, c in zip(stored, computed, strict=True):
-        np.testing.assert_allclose(s, c, rtol=1e-12, atol=0.0)
+        np.testing.assert_allclose(s, c, rtol=2e-11, atol=0.0)
 
 
 def test_einstein_ring_angle_gradient():
