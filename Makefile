@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-slow test-min install install-test lint bench clean
+.PHONY: demo test test-slow test-min chromium install install-test lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -27,8 +27,18 @@ demo: install
 	mkdir -p out
 	$(BIN)/jaxlens render -o out/demo.png
 
-test: install-test
+test: install-test chromium
 	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake -m "not benchmark" tests notebooks
+
+# A Chromium for the browser test (tests/test_browser.py): one on the PATH, else
+# Playwright's own build, else the system's through apt-get where this runs as root.
+# Where none can be installed the test is skipped and says why.
+chromium: install-test
+	@command -v chromium >/dev/null 2>&1 || $(BIN)/python -m playwright install chromium \
+	  >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  { apt-get install -y -q chromium || { apt-get update -q && \
+	  apt-get install -y -q chromium; }; } >/dev/null 2>&1; } || \
+	  echo "no Chromium could be installed: the browser test will be skipped"
 
 # The tests marked `benchmark` (each ~40 s or more; their cases are also benchmarked).
 test-slow: install-test
