@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-slow test-min chromium install install-test lint bench clean
+.PHONY: demo test test-slow test-min chromium docs install install-test lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -53,6 +53,11 @@ test-min:
 	$(VENV_MIN)/bin/python -m pip install --quiet -c .ci/min-versions.txt -e '.[test]'
 	$(VENV_MIN)/bin/python -m pytest -n 2 --dist loadfile -m "not benchmark" tests
 
+# The documentation site (mkdocs-material, mkdocstrings), notebooks executed, into
+# build/site; strict: a warning or a broken link fails the build.
+docs: install-test
+	NO_MKDOCS_2_WARNING=1 JAXLENS_DOCS_EXECUTE=true $(BIN)/python -m mkdocs build --strict
+
 lint: install-test
 	$(BIN)/ruff check jaxlens tests benchmarks
 	$(BIN)/ruff format --check jaxlens tests benchmarks
@@ -61,4 +66,4 @@ bench: install-test
 	$(BIN)/python benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) $(VENV_MIN) out
+	rm -rf $(VENV) $(VENV_MIN) out build/site
