@@ -113,6 +113,7 @@ def run(args):
     from tqdm.auto import tqdm
 
     t = time.perf_counter()
+    cli.status("rendering the first frames (compiling on first use)")
     write = _io.write_video if video else _io.write_gif
     with (
         _io.frame_folder(frames_dir, args.frame_format) as save,
@@ -127,6 +128,7 @@ def run(args):
 
         write(out, stream(), exposure=exposure, fps=fps)
     where = f" and {frames} frames in {frames_dir}/" if frames_dir is not None else ""
+    cli.stop_status()
     print(
         f"wrote {out}{where} ({kind} from {start:g} to {stop:g}, {time.perf_counter() - t:.1f} s)"
     )

@@ -4,7 +4,6 @@ a lensed star (a ring, or arcs from a star off the axis)."""
 import argparse
 import json
 import math
-import sys
 
 
 def _noise(text):
@@ -145,8 +144,9 @@ def run(args):
         if name in free:
             free.remove(name)
     gain = _positive("--gain")(args.gain) if args.gain is not None else None
-    if sys.stderr.isatty():  # a fit is silent for ~30 s, most of it compiling
-        print(f"jaxlens fit: fitting {args.image} (compiling on first use) ...", file=sys.stderr)
+    from . import cli
+
+    cli.status(f"fitting {args.image} (compiling on first use)")  # ~30 s, most compiling
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
     fit = fit_scene(model, args.image, free=free, psf=psf, noise=args.noise, gain=gain,
                     mask=args.mask, init=init or None)  # fmt: skip
@@ -160,6 +160,7 @@ def run(args):
         m, m_err = fit.mass_msun(dist_m)
         out.update(distance_m=dist_m, mass_msun=m, mass_msun_err=m_err)
         lines.append(f"mass          = {m:.6g} +- {m_err:.2g} M_sun (distance {dist_m:g} m)")
+    cli.stop_status()
     if args.json:
         print(json.dumps(_finite(out)))
     else:

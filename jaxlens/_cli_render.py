@@ -188,9 +188,12 @@ def run(args):
     _io.check_render_memory(v["camera"]["width"], v["camera"]["height"])
     scene = jl.Scene.from_validated(v, dtype=pixel_dtype(args, v))
     t = time.perf_counter()
+    cli.status("rendering (compiling on first use)")
     img = jl.render(scene)
+    cli.status(f"writing {out}")
     path = _io.write_image(out, img, exposure=scene.exposure)
     c = v["camera"]
+    cli.stop_status()
     print(
         f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:.12g} R_S, "
         f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s)"

@@ -14,6 +14,8 @@ import sys
 import threading
 from pathlib import Path
 
+from . import _spinner
+
 # Each subcommand lives in a module with `register(subparsers)`; the handler it sets
 # with `set_defaults(run=...)` returns the exit code.
 _COMMANDS = ("jaxlens._cli_render", "jaxlens._cli_animate", "jaxlens._cli_clean")
@@ -34,6 +36,16 @@ class _Parser(argparse.ArgumentParser):
 def one_line(text: str) -> str:
     """A message on one line: whitespace runs (newlines too) become one space."""
     return " ".join(str(text).split())
+
+
+def status(text: str) -> None:
+    """What the command does now, on its status line (a terminal only)."""
+    _spinner.status(text)
+
+
+def stop_status() -> None:
+    """Clear the status line before printing a result."""
+    _spinner.stop()
 
 
 def enable_x64():
@@ -128,6 +140,7 @@ def _exit_at_once(signum, frame, command="jaxlens"):
     one) where an exception cannot pass (the process aborts), so nothing is raised:
     the one line is printed and the process ends. Nothing is written yet."""
     word = "interrupted" if signum == signal.SIGINT else "terminated"
+    _spinner.stop()
     print(f"{command}: {word}", file=sys.stderr, flush=True)
     os._exit(128 + signum)
 
@@ -157,11 +170,14 @@ def main(argv=None) -> int:
         sys.unraisablehook,
         functools.partial(_redeliver, hook=sys.unraisablehook),
     )
+    spinner = None
     try:
         args = build_parser().parse_args(argv)
         command = f"jaxlens {args.command}"
         at_once.keywords["command"] = command
+        spinner = _spinner.Spinner(command).__enter__()  # on a terminal: a status line
         if getattr(args, "uses_jax", True):
+            _spinner.status("loading JAX")
             import jax  # noqa: F401  (under the handler above)
         _configure_cache()
         # From here an interrupt unwinds (temporary files are removed on the way).
@@ -170,17 +186,23 @@ def main(argv=None) -> int:
             signal.SIGINT: sigint if callable(sigint) else signal.default_int_handler,
             signal.SIGTERM: _terminate,
         })  # fmt: skip
+        _spinner.status("working")
         return int(args.run(args) or 0)
     except (UsageError, ValueError, OSError) as e:
+        _spinner.stop()
         print(f"{command}: error: {one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _spinner.stop()
         print(f"{command}: interrupted", file=sys.stderr)
         return 130
     except _Terminated as e:
+        _spinner.stop()
         print(f"{command}: terminated", file=sys.stderr)
         return int(e.code)
     finally:
+        if spinner is not None:
+            spinner.stop()
         sys.unraisablehook = hook
         _set_handlers(previous)
 

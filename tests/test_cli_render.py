@@ -274,6 +274,41 @@ def test_signals_while_jax_loads_or_compiles(tmp_path, signame, code, word):
         assert "Traceback" not in err and os.listdir(tmp_path) == []
 
 
+def test_a_status_line_on_a_terminal_from_the_first_second(tmp_path):
+    # A command silent for seconds (loading JAX, compiling) shows what it does on a
+    # terminal's stderr, and clears the line before its result; not into a pipe.
+    import pty
+    import select
+
+    master, slave = pty.openpty()
+    out = tmp_path / "o.png"
+    p = subprocess.Popen(
+        [sys.executable, "-m", "jaxlens", "render", "--size", "16x12", "--supersample", "1",
+         "-o", str(out)],
+        stderr=slave, stdout=subprocess.PIPE, text=True,
+        env=dict(os.environ, JAXLENS_CACHE_DIR=""),
+    )  # fmt: skip
+    os.close(slave)
+    seen = b""
+    while True:
+        if select.select([master], [], [], 0.2)[0]:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:  # the child closed the terminal
+                break
+            if not chunk:
+                break
+            seen += chunk
+        elif p.poll() is not None:
+            break
+    os.close(master)
+    stdout = p.communicate(timeout=60)[0]
+    assert p.returncode == 0 and stdout.startswith(f"wrote {out}")
+    text = seen.decode()
+    assert "\rjaxlens render: " in text and " s\x1b[K" in text, text
+    assert text.endswith("\r\x1b[K")  # cleared before the result
+
+
 def test_animate_writes_frames_and_gif(tmp_path, capsys):
     out = tmp_path / "orbit.gif"
     args = ["--sky", "checker", "--size", "16x12", "--frames", "3", "--path", "orbit"]
