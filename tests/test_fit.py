@@ -443,6 +443,18 @@ def test_relativistic_ring_fixes_d_without_sigma_or_floor():
     assert fit.ring_flux > 10 * fit.ring_flux_err
 
 
+def test_a_stretched_ring_is_flagged_not_a_traceback():
+    # A ring stretched 2x sideways: its shadow had no measured extent, and the start
+    # from the ring and shadow radii divided by it (ZeroDivisionError). Now the start
+    # skips it, and the fit says the model does not describe the image.
+    from jaxlens._fit.starts import distance_from_radii
+
+    assert distance_from_radii(10.0, 0.0, W) is None
+    img = np.repeat(noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=9), 2, axis=1)
+    fit = fit_ring(img[:, W // 2 : W // 2 + W], star_sigma=math.radians(1.5))
+    assert not fit.valid and "does not describe the image" in fit.message, fit.summary()
+
+
 def test_bad_images(tmp_path):
     with pytest.raises(ValueError, match="blank"):
         fit_ring(np.full((H, W), 0.3))

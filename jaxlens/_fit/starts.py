@@ -282,6 +282,8 @@ def distance_from_radii(ring_px: float, shadow_px: float, width: int):
     focal length. `None` when the ratio lies outside the table ($D$ 1.9 ... 1e5)."""
     d, a_e, sh, _ = _ring_table()
     ratio = np.tan(a_e) / np.tan(sh)
+    if not shadow_px > 0:  # a shadow found with no extent (a stretched image)
+        return None
     q = ring_px / shadow_px
     if not (math.isfinite(q) and ratio.min() < q < ratio.max()):
         return None
