@@ -26,6 +26,7 @@ def main(argv=None):
         choices=(
             "accuracy_ladder",
             "scaling",
+            "scaling_processes",
             "speedup",
             "bench_render",
             "bench_effects",
@@ -40,6 +41,7 @@ def main(argv=None):
         "speedup": ["--rays", "200000"] if args.quick else [],
         "accuracy_ladder": ["--quick"] if args.quick else [],
         "scaling": ["--quick"] if args.quick else [],
+        "scaling_processes": ["--rays", "1e6"] if args.quick else [],
         "bench_render": ["--repeats", "5", "--skip-check"] if args.quick else [],
         "bench_effects": ["--quick"] if args.quick else [],
         "bench_fit": ["--cases", "3"] if args.quick else [],

@@ -171,7 +171,8 @@ def main(argv=None):
             ],
             rows,
         )
-        + "\n![scaling](scaling.png)\n"
+        + "\n![scaling](scaling.png)\n\nOver several processes (`jax.distributed`): "
+        "[`processes.md`](processes.md), from `benchmarks/scaling_processes.py`.\n"
     )
     (RESULTS / "scaling.md").write_text(text)
     (RESULTS / "scaling.json").write_text(json.dumps(records, indent=1))
