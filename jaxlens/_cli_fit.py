@@ -4,6 +4,7 @@ a lensed star (a ring, or arcs from a star off the axis)."""
 import argparse
 import json
 import math
+import sys
 
 
 def _noise(text):
@@ -48,7 +49,10 @@ def register(sub):
         "tagged linear as stored; channels averaged; FITS through astropy, its WCS fixing "
         "the field of view).",
     )
-    p.add_argument("image", help="the image (PNG, EXR, TIFF, FITS, ...)")
+    p.add_argument("images", nargs="+", metavar="image",
+                   help="the image (PNG, EXR, TIFF, FITS, ...); several are fitted in turn "
+                   "with the same options, one report (or JSON line) each, the compiled "
+                   "programs reused for images of one size")  # fmt: skip
     blur = p.add_mutually_exclusive_group()
     blur.add_argument(
         "--psf-sigma-px",
@@ -146,12 +150,40 @@ def run(args):
     gain = _positive("--gain")(args.gain) if args.gain is not None else None
     from . import cli
 
-    cli.status(f"fitting {args.image} (compiling on first use)")  # ~30 s, most compiling
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
-    fit = fit_scene(model, args.image, free=free, psf=psf, noise=args.noise, gain=gain,
-                    mask=args.mask, init=init or None)  # fmt: skip
-    out = fit.to_dict()
-    lines = [f"fit of {args.image}", fit.summary()]
+    failed = 0
+    for i, image in enumerate(args.images):
+        which = f" ({i + 1} of {len(args.images)})" if len(args.images) > 1 else ""
+        cli.status(f"fitting {image}{which} (compiling on first use)")  # ~30 s, most compiling
+        try:
+            fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
+                            mask=args.mask, init=init or None)  # fmt: skip
+        except (ValueError, OSError) as e:
+            if len(args.images) == 1:
+                raise
+            # One bad image among several: said on its own line, the others go on.
+            failed += 1
+            cli.stop_status()
+            if args.json:
+                print(json.dumps({"image": image, "error": cli.one_line(e)}), flush=True)
+            else:
+                print(f"fit of {image}\nerror: {cli.one_line(e)}\n", flush=True)
+            continue
+        _report(args, image, fit, mass, dist_m)
+    if failed:
+        cli.stop_status()
+        print(f"jaxlens fit: error: {failed} of {len(args.images)} images could not be "
+              "fitted (see their lines)", file=sys.stderr)  # fmt: skip
+        return 2
+    return 0
+
+
+def _report(args, image, fit, mass, dist_m):
+    """One image's result: the readable report, or one line of JSON."""
+    from . import cli
+
+    out = {"image": image, **fit.to_dict()}
+    lines = [f"fit of {image}", fit.summary()]
     if mass is not None:
         d_m, d_m_err = fit.distance_m(mass)
         out.update(mass_msun=mass, distance_m=d_m, distance_m_err=d_m_err)
@@ -162,10 +194,9 @@ def run(args):
         lines.append(f"mass          = {m:.6g} +- {m_err:.2g} M_sun (distance {dist_m:g} m)")
     cli.stop_status()
     if args.json:
-        print(json.dumps(_finite(out)))
+        print(json.dumps(_finite(out)), flush=True)
     else:
-        print("\n".join(lines))
-    return 0
+        print("\n".join(lines) + ("\n" if len(args.images) > 1 else ""), flush=True)
 
 
 def _finite_number(what, text):

@@ -16,9 +16,10 @@ _current = None  # the running spinner, if any
 
 
 def status(text: str) -> None:
-    """What the command does now (shown on the status line, if there is one)."""
+    """What the command does now (shown on the status line, if there is one; after a
+    `pause`, the line comes back once this has lasted a second)."""
     if _current is not None:
-        _current.text = text
+        _current.resume(text)
 
 
 def _bar_on_screen() -> bool:
@@ -36,7 +37,8 @@ class Spinner:
         self.delay, self.interval = delay, interval
         self._stop = threading.Event()
         self._lock = threading.RLock()  # stop() may run in a signal handler
-        self._shown = False
+        self._shown = self._paused = False
+        self._since = time.monotonic()
         self._thread = None
 
     def __enter__(self):
@@ -54,22 +56,34 @@ class Spinner:
     def __exit__(self, *exc):
         self.stop()
 
+    def resume(self, text: str) -> None:
+        with self._lock:
+            if self._paused:
+                self._paused, self._since = False, time.monotonic()
+            self.text = text
+
+    def pause(self) -> None:
+        """Clear the line until the next `status` (a result is printed meanwhile)."""
+        with self._lock:
+            self._paused = True
+            if self._shown:
+                self._write("\r\x1b[K")
+                self._shown = False
+
     def _run(self):
-        t0 = time.monotonic()
-        if self._stop.wait(self.delay):
-            return
         i = 0
-        while not self._stop.is_set():
+        while not self._stop.wait(self.interval):
             with self._lock:
-                if not self._stop.is_set() and not _bar_on_screen():
+                now = time.monotonic()
+                due = not self._paused and now - self._since >= self.delay
+                if due and not self._stop.is_set() and not _bar_on_screen():
                     line = f"{self.command}: {self.text} {_FRAMES[i % 4]}"
-                    self._write(f"\r{line} {time.monotonic() - t0:.0f} s\x1b[K")
+                    self._write(f"\r{line} {now - self._since:.0f} s\x1b[K")
                     self._shown = True
                 elif self._shown:  # a progress bar took over: leave it the line
                     self._write("\r\x1b[K")
                     self._shown = False
             i += 1
-            self._stop.wait(self.interval)
 
     def _write(self, text):
         try:
@@ -91,6 +105,12 @@ class Spinner:
 
 
 def stop() -> None:
-    """Stop the running spinner, if any (before printing a result)."""
+    """Stop the running spinner, if any (the command ends)."""
     if _current is not None:
         _current.stop()
+
+
+def pause() -> None:
+    """Clear the status line until the next `status` (before printing a result)."""
+    if _current is not None:
+        _current.pause()

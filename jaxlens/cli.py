@@ -44,8 +44,9 @@ def status(text: str) -> None:
 
 
 def stop_status() -> None:
-    """Clear the status line before printing a result."""
-    _spinner.stop()
+    """Clear the status line before printing a result (the next `status` brings it
+    back)."""
+    _spinner.pause()
 
 
 def enable_x64():

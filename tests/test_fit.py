@@ -492,6 +492,19 @@ def test_cli(tmp_path, capsys, monkeypatch):
     assert out["distance_m_err"] == pytest.approx(out["distance_err"] * 10 * 2953.25, rel=1e-6)
     assert 0 < out["distance_err"] < 0.2 and 0 < out["fov_deg_err"] < 0.5
 
+    # Several images, one JSON line each; a bad one says so on its line, the others go
+    # on, and the exit code is 2.
+    blank = tmp_path / "blank.png"
+    write_png(blank, np.full((H, W), 0.25), 8)
+    argv = ["fit", str(path), str(blank), str(path), "--star-sigma-deg", "1.5", "--json"]
+    assert cli.main(argv) == 2
+    captured = capsys.readouterr()
+    lines = [json.loads(line) for line in captured.out.strip().splitlines()]
+    assert [line["image"] for line in lines] == [str(path), str(blank), str(path)]
+    assert "blank" in lines[1]["error"] and "distance" not in lines[1]
+    assert lines[0]["distance"] == lines[2]["distance"] == out["distance"]
+    assert "1 of 3 images could not be fitted" in captured.err
+
     # The text report, with the mass from a known distance (6 significant digits).
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--distance-m", "6e5"]) == 0
     text = capsys.readouterr().out
@@ -501,8 +514,6 @@ def test_cli(tmp_path, capsys, monkeypatch):
                         re.M).group(1))  # fmt: skip
     assert m == pytest.approx(6e5 / (d * 2953.25), rel=2e-5)
 
-    blank = tmp_path / "blank.png"
-    write_png(blank, np.full((H, W), 0.25), 8)
     for argv in (["fit", str(blank)], ["fit", str(tmp_path / "none.png")],
                  ["fit", str(path), "--star-sigma-deg", "-1"],
                  ["fit", str(path), "--mass-msun", "0"]):  # fmt: skip
