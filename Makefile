@@ -36,7 +36,8 @@ test: install-test chromium
 chromium: install-test
 	@command -v chromium >/dev/null 2>&1 || $(BIN)/python -m playwright install chromium \
 	  >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
-	  { apt-get install -y -q chromium || { apt-get update -q && \
+	  { export DEBIAN_FRONTEND=noninteractive; apt-get install -y -q chromium || \
+	  { apt-get update -q && \
 	  apt-get install -y -q chromium; }; } >/dev/null 2>&1; } || \
 	  echo "no Chromium could be installed: the browser test will be skipped"
 
