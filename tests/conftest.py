@@ -15,8 +15,10 @@ changes; every test runs as before.
 """
 
 import os
+import socket
 
 import jax
+import pytest
 
 jax.config.update("jax_enable_x64", True)
 # No persistent compilation cache: a test that runs the CLI in-process would otherwise
@@ -56,3 +58,11 @@ def pytest_collection_modifyitems(config, items):
     # tests keep theirs.
     order = sorted(files.items(), key=lambda kv: (-walls.get(kv[0], 0.0), -len(kv[1])))
     items[:] = [item for _, group in order for item in group]
+
+
+@pytest.fixture
+def free_port() -> int:
+    """A TCP port on localhost that nothing listens on (for servers a test starts)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -48,17 +48,11 @@ def _chromium(playwright) -> str | None:
     return next((c for c in candidates if c and Path(c).is_file()), None)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
-def lab(tmp_path):
+def lab(tmp_path, free_port):
     """A JupyterLab server on a free port, serving a notebook that shows an Explorer."""
     (tmp_path / "explorer.ipynb").write_text(json.dumps(NOTEBOOK))
-    port = _free_port()
+    port = free_port
     cmd = [sys.executable, "-m", "jupyter", "lab", "--no-browser", "--allow-root",
            f"--port={port}", "--ServerApp.ip=127.0.0.1", f"--ServerApp.root_dir={tmp_path}",
            f"--IdentityProvider.token={TOKEN}", "--expose-app-in-browser",

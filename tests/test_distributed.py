@@ -4,7 +4,6 @@ A ray batch split over the four devices, in chunks that end in padding, must com
 bit for bit the same, on every process."""
 
 import os
-import socket
 import subprocess
 import sys
 import textwrap
@@ -33,19 +32,13 @@ WORKER = textwrap.dedent(
 )
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _env(devices: int) -> dict:
     return dict(os.environ, JAXLENS_CACHE_DIR="",
                 XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")  # fmt: skip
 
 
-def test_a_ray_batch_over_two_processes_is_bitwise_one_process(tmp_path):
-    port = str(_free_port())
+def test_a_ray_batch_over_two_processes_is_bitwise_one_process(tmp_path, free_port):
+    port = str(free_port)
     procs = [
         subprocess.Popen([sys.executable, "-c", WORKER, str(i), "2", port, str(tmp_path / f"p{i}")],
                          env=_env(2), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
