@@ -350,10 +350,11 @@ def frame_folder(folder, fmt: str = "png"):
                 folder.rmdir()
 
 
-def _frames_iter(frames):
-    """`frames` as (first frame, iterator over all frames): an `(N, H, W, 3)` array or
-    any iterable of `(H, W, 3)` frames (a generator streams them: a long animation
-    need not be in memory). Raises `ValueError` for no frame."""
+def _frames(frames):
+    """`frames` as `(shape, iterator of checked frames)`: an `(N, H, W, 3)` array or any
+    iterable of `(H, W, 3)` frames (a generator streams them: a long animation need not
+    be in memory). Each frame is checked as it comes: real numbers, of the first's shape.
+    Raises `ValueError` for no frame or a bad one."""
     if hasattr(frames, "shape") and hasattr(frames, "dtype"):
         arr = np.asarray(frames)
         if arr.ndim != 4 or arr.shape[0] < 1:
@@ -362,10 +363,11 @@ def _frames_iter(frames):
     else:
         frames = iter(frames)
     try:
-        first = next(frames)
+        first = _check_frame(next(frames))
     except StopIteration:
         raise ValueError("no frames to write") from None
-    return first, itertools.chain([first], frames)
+    rest = (_check_frame(f, first.shape) for f in frames)
+    return first.shape, itertools.chain([first], rest)
 
 
 def _check_frame(frame, shape=None) -> np.ndarray:
@@ -406,8 +408,7 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
     if not math.isfinite(exposure):
         raise ValueError(f"exposure={exposure!r} must be finite (stops)")
     check_fps(fps, video=False)
-    first, frames = _frames_iter(frames)
-    shape = _check_frame(first).shape
+    shape, frames = _frames(frames)
     oiio = _oiio()
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(tmp)
@@ -420,7 +421,7 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
                 if not out.open(tmp, spec, mode):
                     raise OSError(f"cannot write {str(path)!r}: {out.geterror()}")
                 mode = "AppendSubimage"
-                img = to_display(_check_frame(frame, shape), exposure=exposure)
+                img = to_display(frame, exposure=exposure)
                 if not out.write_image(np.ascontiguousarray(img)):
                     raise OSError(f"cannot write {str(path)!r}: {out.geterror()}")
         finally:
@@ -484,8 +485,7 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
     if not math.isfinite(exposure):
         raise ValueError(f"exposure={exposure!r} must be finite (stops)")
     check_fps(fps, video=True)
-    first, frames = _frames_iter(frames)
-    h, w, _ = shape = _check_frame(first).shape
+    (h, w, _), frames = _frames(frames)
     av = _av()
     codec = _video_codec(av)
     pad = ((0, h % 2), (0, w % 2), (0, 0))
@@ -503,8 +503,7 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
             if codec == "mpeg4":
                 cc.bit_rate = 100_000_000  # a cap only: the fixed quantiser decides
             for i, f in enumerate(frames):
-                rgb = np.pad(to_display(_check_frame(f, shape), exposure=exposure), pad,
-                             mode="edge")  # fmt: skip
+                rgb = np.pad(to_display(f, exposure=exposure), pad, mode="edge")
                 frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
                 frame = frame.reformat(format="yuv420p", dst_colorspace="itu709",
                                        dst_color_range="MPEG")  # fmt: skip
