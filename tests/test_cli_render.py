@@ -261,12 +261,18 @@ def test_signals_while_jax_loads_or_compiles(tmp_path, signame, code, word):
         # Python's own Ctrl-C handler in the child (a background job inherits SIGINT
         # ignored), set in the child itself: a pre-exec function would fork this
         # multithreaded process.
+        # The delay counts from the child's "ready" (the command's module imported, in
+        # 0.1-0.3 s on a loaded machine): a signal during Python's own start-up, before
+        # any of jaxlens runs, ends the process the default way.
         code_ = ("import runpy, signal, sys;"
                  " signal.signal(signal.SIGINT, signal.default_int_handler);"
+                 " import jaxlens.cli; print('ready', flush=True);"
                  f" sys.argv = ['jaxlens', 'render', '-o', {str(out)!r}];"
                  " runpy.run_module('jaxlens', run_name='__main__')")  # fmt: skip
-        p = subprocess.Popen([sys.executable, "-c", code_], stderr=subprocess.PIPE, text=True,
+        p = subprocess.Popen([sys.executable, "-c", code_], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True,
                              env=dict(os.environ, JAXLENS_CACHE_DIR=""))  # fmt: skip
+        assert p.stdout.readline() == "ready\n"
         time.sleep(delay)
         p.send_signal(getattr(signal, signame))
         err = p.communicate(timeout=120)[1]
