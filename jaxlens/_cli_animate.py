@@ -2,13 +2,16 @@
 pan, zoom), and optionally its frames as image files. Frames are rendered in batched
 compiled calls of one size and streamed to the files as they come."""
 
+import hashlib
+import json
 import math
 import time
+from glob import escape as glob_escape
 from pathlib import Path
 
 import numpy as np
 
-from . import _io
+from . import _io, _multi
 from ._cli_render import add_scene_options, pixel_dtype, scene_dict
 from ._schema import ANIMATION_PATHS, ANIMATION_RANGES
 
@@ -28,6 +31,7 @@ def register(sub):
         "the scene file's [animation] table.",
     )
     add_scene_options(p, size_default="480x270", supersample_default=2)
+    _multi.add_options(p)
     p.add_argument("--path", choices=ANIMATION_PATHS, help="camera path (default approach)")
     p.add_argument("--frames", type=int, help="number of frames (default 24)")
     p.add_argument("--start", type=float, help="first value of the path (see above)")
@@ -38,7 +42,7 @@ def register(sub):
                    "there are replaced)")  # fmt: skip
     p.add_argument("--frame-format", choices=FRAME_FORMATS, default="png",
                    help="file format of the frames (default png)")  # fmt: skip
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, kept=kept_frames)
 
 
 def path_values(path: str, start: float, stop: float, frames: int) -> np.ndarray:
@@ -65,6 +69,7 @@ def run(args):
     from . import cli
 
     cli.enable_x64()
+    index, count = _multi.join() if args.distributed else (0, 1)
 
     import jaxlens as jl  # the public functions, looked up when the command runs
 
@@ -92,47 +97,123 @@ def run(args):
     _check(kind, start, stop)
     width, height = scene["camera"]["width"], scene["camera"]["height"]
     group = frames_per_call(width, height, frames)
+    if count > 1:
+        # Groups small enough to share out, of at least 2 frames where one process would
+        # batch them (a lone frame runs another program, whose pixels differ by an ulp).
+        group = max(min(group, 2), frames_per_call(width, height, -(-frames // count)))
     _io.check_render_memory(width, height, group)
     frames_dir = None if args.frames_dir is None else _check_frames_dir(Path(args.frames_dir))
 
-    base = jl.Scene.from_validated(scene, dtype=pixel_dtype(args, scene))
+    dtype = pixel_dtype(args, scene)
+    base = jl.Scene.from_validated(scene, dtype=dtype)
     values = path_values(kind, start, stop, frames)
     step = {"approach": jl.approach, "orbit": jl.orbit, "pan": jl.pan, "zoom": jl.zoom}[kind]
     exposure = base.exposure
 
-    def rendered():
+    def render_group(lo):
         # Frames in groups of the same size (the last padded with its final value), so
         # one compiled program serves them all and only a group is in memory.
-        for lo in range(0, frames, group):
-            part = values[lo : lo + group]
-            padded = np.concatenate([part, np.repeat(part[-1:], group - len(part))])
-            cameras = step(base.camera, padded if kind == "approach" else np.radians(padded))
-            images = jl.render(base.replace(camera=cameras), progress=False)
-            yield from np.asarray(images)[: len(part)]
+        part = values[lo : lo + group]
+        padded = np.concatenate([part, np.repeat(part[-1:], group - len(part))])
+        cameras = step(base.camera, padded if kind == "approach" else np.radians(padded))
+        images = jl.render(base.replace(camera=cameras), progress=False)
+        return np.asarray(images)[: len(part)]
 
     from tqdm.auto import tqdm
 
     t = time.perf_counter()
     cli.status("rendering the first frames (compiling on first use)")
     write = _io.write_video if video else _io.write_gif
-    with (
-        _io.frame_folder(frames_dir, args.frame_format) as save,
-        tqdm(total=frames, desc="animate", unit="frame", delay=2.0, leave=False) as bar,
-    ):
+    with tqdm(total=frames, desc="animate", unit="frame", delay=2.0, leave=False,
+              disable=index != 0) as bar:  # fmt: skip
+        if args.distributed:
+            key = json.dumps([scene, kind, values.tolist(), str(np.dtype(dtype))],
+                             sort_keys=True, default=str)  # fmt: skip
+            stage = _stage(out, hashlib.sha256(key.encode()).hexdigest()[:16])
+            earlier = _finished(stage)
+            _render_share(stage, render_group, frames, group, index, count, bar)
+            if index != 0:
+                return 0  # process 0 writes the files
+            rendered = _collected(stage, frames, bar)
+        else:
+            rendered = (img for lo in range(0, frames, group) for img in render_group(lo))
+        with _io.frame_folder(frames_dir, args.frame_format) as save:
 
-        def stream():
-            for i, img in enumerate(rendered()):
-                save(i, img, exposure=exposure)
-                bar.update()
-                yield img
+            def stream():
+                for i, img in enumerate(rendered):
+                    save(i, img, exposure=exposure)
+                    if not args.distributed:
+                        bar.update()
+                    yield img
 
-        write(out, stream(), exposure=exposure, fps=fps)
+            write(out, stream(), exposure=exposure, fps=fps)
+    if args.distributed:
+        for folder in out.parent.glob(f".{glob_escape(out.name)}.frames-*"):
+            _io.remove_temporary(folder)  # this run's, and any an older command left
     where = f" and {frames} frames in {frames_dir}/" if frames_dir is not None else ""
     cli.stop_status()
-    print(
-        f"wrote {out}{where} ({kind} from {start:g} to {stop:g}, {time.perf_counter() - t:.1f} s)"
-    )
+    over = f", {count} processes" if count > 1 else ""
+    if args.distributed and earlier:
+        over += f", {earlier} frames from an earlier run"
+    print(f"wrote {out}{where} ({kind} from {start:g} to {stop:g}, "
+          f"{time.perf_counter() - t:.1f} s{over})")  # fmt: skip
     return 0
+
+
+def _stage(out: Path, key: str) -> Path:
+    """The folder beside `out` where the processes of a distributed run put their frames
+    (`NNNNN.npy`, linear float32), named for the animation's settings: a rerun of the
+    same command finds the frames an interrupted one finished."""
+    folder = out.parent / f".{out.name}.frames-{key}"
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+def _frame_file(stage: Path, i: int) -> Path:
+    return stage / f"{i:05d}.npy"
+
+
+def _finished(stage: Path) -> int:
+    return sum(1 for _ in stage.glob("[0-9]*.npy"))
+
+
+def _render_share(stage, render_group, frames, group, index, count, bar):
+    """This process's share of the groups of frames, each frame saved atomically into
+    `stage` by its owner; groups a previous run finished are skipped."""
+    starts = range(0, frames, group)
+    for g in _multi.share(len(starts), index, count):
+        lo = starts[g]
+        todo = range(lo, min(lo + group, frames))
+        if all(_frame_file(stage, i).exists() for i in todo):
+            continue
+        for i, img in zip(todo, render_group(lo), strict=True):
+            with _io.atomic_output(_frame_file(stage, i)) as tmp:
+                np.save(tmp, img)
+        bar.update(_finished(stage) - bar.n)
+
+
+def _collected(stage, frames, bar):
+    """Process 0: wait until every frame is in `stage` (the bar counting them), then
+    yield them in order."""
+    while (n := _finished(stage)) < frames:
+        bar.update(n - bar.n)
+        time.sleep(0.1)
+    bar.update(frames - bar.n)
+    for i in range(frames):
+        yield np.load(_frame_file(stage, i))
+
+
+def kept_frames(args) -> str:
+    """What a failed distributed run left for the next: the finished frames."""
+    out = Path(args.output)
+    folders = sorted(out.parent.glob(f".{glob_escape(out.name)}.frames-*"))
+    n = sum(_finished(f) for f in folders)
+    if n == 0:
+        for folder in folders:
+            _io.remove_temporary(folder)  # nothing in it worth keeping
+        return f"nothing was written to {out}"
+    return (f"nothing was written to {out}; {n} finished frames are kept in "
+            f"{folders[-1]} and the same command continues from them")  # fmt: skip
 
 
 # Frames rendered in one call: as many as fit in this many bytes of float32 RGB.

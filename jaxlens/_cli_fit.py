@@ -6,6 +6,8 @@ import json
 import math
 import sys
 
+from . import _multi
+
 
 def _noise(text):
     if text in ("gaussian", "poisson"):
@@ -99,10 +101,12 @@ def register(sub):
         "--distance-m", type=str, default=None, help="camera distance in metres: the mass"
     )
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
+    _multi.add_options(p)
     p.set_defaults(run=run)
 
 
 def run(args):
+    index, count = _multi.join() if args.distributed else (0, 1)
     sigma = None
     if args.star_sigma_deg is not None:
         sigma_deg = _positive("--star-sigma-deg")(args.star_sigma_deg)
@@ -151,37 +155,55 @@ def run(args):
     from . import cli
 
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
-    failed = 0
-    for i, image in enumerate(args.images):
-        which = f" ({i + 1} of {len(args.images)})" if len(args.images) > 1 else ""
+    images = args.images
+    several = len(images) > 1
+
+    def one(i) -> tuple[str, bool]:
+        """Image `i`'s report (or JSON line), and whether it failed."""
+        image = images[i]
+        which = f" ({i + 1} of {len(images)})" if several else ""
         cli.status(f"fitting {image}{which} (compiling on first use)")  # ~30 s, most compiling
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
                             mask=args.mask, init=init or None)  # fmt: skip
         except (ValueError, OSError) as e:
-            if len(args.images) == 1:
+            if not several:
                 raise
             # One bad image among several: said on its own line, the others go on.
-            failed += 1
-            cli.stop_status()
             if args.json:
-                print(json.dumps({"image": image, "error": cli.one_line(e)}), flush=True)
-            else:
-                print(f"fit of {image}\nerror: {cli.one_line(e)}\n", flush=True)
-            continue
-        _report(args, image, fit, mass, dist_m)
+                return json.dumps({"image": image, "error": cli.one_line(e)}), True
+            return f"fit of {image}\nerror: {cli.one_line(e)}\n", True
+        return _report(args, image, fit, mass, dist_m), False
+
+    failed = 0
+    if args.distributed:
+        # Each process fits every `count`-th image; after each round process 0 prints
+        # the round's results in the images' order (gathered through JAX).
+        for lo in range(0, len(images), count):
+            text, bad = one(lo + index) if lo + index < len(images) else ("", False)
+            texts = _multi.gather_texts(f"{int(bad)}{text}" if lo + index < len(images) else "")
+            for t in texts:
+                if t and index == 0:
+                    cli.stop_status()
+                    print(t[1:], flush=True)
+                failed += int(t[:1] == "1")
+    else:
+        for i in range(len(images)):
+            text, bad = one(i)
+            cli.stop_status()
+            print(text, flush=True)
+            failed += bad
     if failed:
         cli.stop_status()
-        print(f"jaxlens fit: error: {failed} of {len(args.images)} images could not be "
-              "fitted (see their lines)", file=sys.stderr)  # fmt: skip
+        if index == 0:
+            print(f"jaxlens fit: error: {failed} of {len(images)} images could not be "
+                  "fitted (see their lines)", file=sys.stderr)  # fmt: skip
         return 2
     return 0
 
 
-def _report(args, image, fit, mass, dist_m):
+def _report(args, image, fit, mass, dist_m) -> str:
     """One image's result: the readable report, or one line of JSON."""
-    from . import cli
-
     out = {"image": image, **fit.to_dict()}
     lines = [f"fit of {image}", fit.summary()]
     if mass is not None:
@@ -192,11 +214,9 @@ def _report(args, image, fit, mass, dist_m):
         m, m_err = fit.mass_msun(dist_m)
         out.update(distance_m=dist_m, mass_msun=m, mass_msun_err=m_err)
         lines.append(f"mass          = {m:.6g} +- {m_err:.2g} M_sun (distance {dist_m:g} m)")
-    cli.stop_status()
     if args.json:
-        print(json.dumps(_finite(out)), flush=True)
-    else:
-        print("\n".join(lines) + ("\n" if len(args.images) > 1 else ""), flush=True)
+        return json.dumps(_finite(out))
+    return "\n".join(lines) + ("\n" if len(args.images) > 1 else "")
 
 
 def _finite_number(what, text):

@@ -161,6 +161,16 @@ def _set_handlers(handlers: dict) -> dict:
     return old
 
 
+def _failed(args, code: int) -> int:
+    """The exit status of a failed command; a process of a multi-process job ends at
+    once (`os._exit`), instead of waiting in JAX's shutdown for the others to finish."""
+    if getattr(args, "distributed", False):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
 def main(argv=None) -> int:
     # The handlers hold from the start: a signal while JAX loads (the first seconds)
     # ends the command with its one line too, not a traceback or an abort.
@@ -171,11 +181,26 @@ def main(argv=None) -> int:
         sys.unraisablehook,
         functools.partial(_redeliver, hook=sys.unraisablehook),
     )
-    spinner = None
+    spinner = args = None
     try:
+        argv = sys.argv[1:] if argv is None else list(argv)
         args = build_parser().parse_args(argv)
         command = f"jaxlens {args.command}"
         at_once.keywords["command"] = command
+        if getattr(args, "processes", None) is not None:
+            if args.distributed:
+                raise UsageError("--processes and --distributed exclude each other: "
+                                 "--processes starts the processes itself")  # fmt: skip
+            if args.processes != 1:
+                from . import _multi
+
+                # Interrupts unwind from here: the processes started are stopped.
+                _set_handlers({signal.SIGINT: signal.default_int_handler,
+                               signal.SIGTERM: _terminate})  # fmt: skip
+
+                kept = getattr(args, "kept", None)  # what a failed run leaves for a rerun
+                return _multi.launch(command, _multi.strip_processes(argv), args.processes,
+                                     kept and (lambda: kept(args)))  # fmt: skip
         spinner = _spinner.Spinner(command).__enter__()  # on a terminal: a status line
         if getattr(args, "uses_jax", True):
             _spinner.status("loading JAX")
@@ -188,19 +213,24 @@ def main(argv=None) -> int:
             signal.SIGTERM: _terminate,
         })  # fmt: skip
         _spinner.status("working")
-        return int(args.run(args) or 0)
+        code = int(args.run(args) or 0)
+        if code == 0 and getattr(args, "distributed", False):
+            from . import _multi
+
+            _multi.finished()
+        return code
     except (UsageError, ValueError, OSError) as e:
         _spinner.stop()
         print(f"{command}: error: {one_line(e)}", file=sys.stderr)
-        return 2
+        return _failed(args, 2)
     except KeyboardInterrupt:
         _spinner.stop()
         print(f"{command}: interrupted", file=sys.stderr)
-        return 130
+        return _failed(args, 130)
     except _Terminated as e:
         _spinner.stop()
         print(f"{command}: terminated", file=sys.stderr)
-        return int(e.code)
+        return _failed(args, int(e.code))
     finally:
         if spinner is not None:
             spinner.stop()

@@ -63,3 +63,133 @@ def test_a_ray_batch_over_two_processes_is_bitwise_one_process(tmp_path, free_po
         for key in ("phi", "status", "r_min"):
             np.testing.assert_array_equal(got[key], ref[key], err_msg=f"process {i}: {key}")
     assert np.unique(ref["status"]).size == 2  # escaped and captured rays both present
+
+
+# ------------------------------------------------------- commands over processes
+
+
+def _jaxlens(args, env, timeout=600):
+    return subprocess.run([sys.executable, "-m", "jaxlens", *args], env=env, capture_output=True,
+                          text=True, timeout=timeout)  # fmt: skip
+
+
+def _command_env(cache) -> dict:
+    # Two CPU devices a process; one persistent cache for the runs of a test, so the
+    # processes load the programs the first run compiled (the same programs: the
+    # comparison is of how the work is split, not of two compiles).
+    return dict(_env(2), JAXLENS_CACHE_DIR=str(cache))
+
+
+def _children(pid: int) -> dict[int, int]:
+    """`{process index: pid}` of the processes `jaxlens ... --processes N` started."""
+    out = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            if ppid != pid:
+                continue
+            with open(f"/proc/{entry}/environ", "rb") as f:
+                env = dict(v.split(b"=", 1) for v in f.read().split(b"\0") if b"=" in v)
+        except (OSError, ValueError, IndexError):
+            continue
+        if b"JAXLENS_PROCESS_ID" in env:
+            out[int(env[b"JAXLENS_PROCESS_ID"])] = int(entry)
+    return out
+
+
+def _files(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+def test_an_animation_over_two_processes_is_bitwise_one_process(tmp_path):
+    import signal
+    import time
+
+    env = _command_env(tmp_path / "cache")
+    anim = ["animate", "--size", "64x36", "--frames", "6", "--path", "orbit"]
+    for name in ("one", "two", "three"):
+        (tmp_path / name).mkdir()
+    one = _jaxlens([*anim, "-o", str(tmp_path / "one" / "a.gif"), "--frames-dir",
+                    str(tmp_path / "one" / "f")], env)  # fmt: skip
+    assert one.returncode == 0, one.stderr[-3000:]
+    two = _jaxlens([*anim, "-o", str(tmp_path / "two" / "a.gif"), "--frames-dir",
+                    str(tmp_path / "two" / "f"), "--processes", "2"], env)  # fmt: skip
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert "2 processes" in two.stdout and "[Gloo]" not in two.stdout
+    ref = _files(tmp_path / "one")
+    assert sorted(ref) == ["a.gif"] + [f"f/frame_{i:04d}.png" for i in range(6)]
+    assert _files(tmp_path / "two") == ref  # nothing else either: no staging folder left
+
+    # Process 1 held once it has joined, and killed once process 0 has finished its
+    # share: a clear error, no output file; the 3 frames process 0 finished are kept,
+    # and a rerun completes from them, bit for bit the same animation.
+    out = tmp_path / "three" / "a.gif"
+    p = subprocess.Popen([sys.executable, "-m", "jaxlens", *anim, "-o", str(out), "--processes",
+                          "2"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.parent.glob(".a.gif.frames-*")) and time.monotonic() < deadline:
+            time.sleep(0.01)  # made by the processes once they have joined
+        children = _children(p.pid)
+        os.kill(children[1], signal.SIGSTOP)  # seconds before it could render a frame
+        while len(list(out.parent.glob(".a.gif.frames-*/0*.npy"))) < 3:
+            assert time.monotonic() < deadline and p.poll() is None
+            time.sleep(0.01)
+        os.kill(children[1], signal.SIGKILL)
+        err = p.communicate(timeout=120)[1]
+    finally:
+        p.kill()
+    assert p.returncode == 1, err
+    line = err.replace("\r", "\n").strip().splitlines()[-1]
+    assert line.startswith("jaxlens animate: error: process 1 of 2 was killed by SIGKILL"), err
+    assert "nothing was written to" in line
+    assert "3 finished frames are kept in" in line
+    (stage,) = out.parent.iterdir()  # nothing but the finished frames
+    assert stage.name.startswith(".a.gif.frames-")
+    assert sorted(f.name for f in stage.iterdir()) == ["00000.npy", "00001.npy", "00002.npy"]
+    again = _jaxlens([*anim, "-o", str(out), "--processes", "2"], env)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "3 frames from an earlier run" in again.stdout, again.stdout
+    assert _files(out.parent) == {"a.gif": ref["a.gif"]}
+
+
+def test_fits_over_two_processes_are_bitwise_one_process(tmp_path):
+    import json
+
+    import OpenImageIO as oiio
+
+    import jaxlens as jl
+
+    paths = []
+    # Process 0 meets the blank image (an error line), process 1 fits the ring.
+    for i, (d, fov_deg) in enumerate([(0.0, 0.0), (14.0, 75.0)]):
+        if d:
+            img = np.asarray(jl.ring_image(d, np.radians(fov_deg), 96, 72, sigma=np.radians(1.5),
+                                           brightness=0.8, floor=0.05))  # fmt: skip
+            img = img + 0.01 * np.random.default_rng(i).standard_normal(img.shape)
+        else:
+            img = np.full((72, 96), 0.25)  # blank: an error line, the others go on
+        paths.append(str(tmp_path / f"i{i}.exr"))
+        out = oiio.ImageOutput.create(paths[-1])
+        assert out.open(paths[-1], oiio.ImageSpec(96, 72, 1, oiio.FLOAT))
+        assert out.write_image(np.ascontiguousarray(img[..., None], np.float32)) and out.close()
+    env = _command_env(tmp_path / "cache")
+    argv = ["fit", *paths, "--star-sigma-deg", "1.5", "--json"]
+    one = _jaxlens(argv, env)
+    two = _jaxlens([*argv, "--processes", "2"], env)
+    for run in (one, two):
+        assert run.returncode == 2, run.stderr[-3000:]  # the blank image
+        assert run.stderr.strip().endswith("1 of 2 images could not be fitted (see their lines)")
+    lines = [[json.loads(s) for s in run.stdout.splitlines()] for run in (one, two)]
+    for a in lines:
+        for row in a:
+            row.pop("seconds", None)  # the only value that differs: the time taken
+    assert lines[0] == lines[1]
+    assert [row["image"] for row in lines[0]] == paths
+    assert "blank" in lines[0][0]["error"] and lines[0][1]["converged"]
+    assert abs(lines[0][1]["distance"] / 14.0 - 1) < 0.01
