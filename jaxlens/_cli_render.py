@@ -6,7 +6,7 @@ import math
 import time
 from pathlib import Path
 
-from . import _io
+from . import _io, _multi
 from ._schema import DEFAULT_SKY
 
 SKY_CHOICES = "star | default | checker | panorama:PATH | plane:PATH"
@@ -170,13 +170,30 @@ def register(sub):
         "Options override the scene file.",
     )
     add_scene_options(p, size_default="960x540", supersample_default=2)
-    p.set_defaults(run=run)
+    _multi.add_options(p)
+    p.set_defaults(run=run, kept=kept_blocks)
+
+
+def kept_blocks(args) -> str:
+    """What a failed distributed render left for the next: its finished blocks."""
+    from glob import escape
+
+    out = Path(args.output)
+    folders = sorted(out.parent.glob(f".{escape(out.name)}.blocks-*"))
+    n = sum(1 for f in folders for _ in f.glob("[0-9]*.npy"))
+    if n == 0:
+        for folder in folders:
+            _io.remove_temporary(folder)
+        return f"nothing was written to {out}"
+    return (f"nothing was written to {out}; {n} finished blocks are kept in {folders[-1]} "
+            "and the same command continues from them")  # fmt: skip
 
 
 def run(args):
     from . import cli
 
     cli.enable_x64()
+    index, count = _multi.join() if args.distributed else (0, 1)
 
     import jaxlens as jl  # the public functions, looked up when the command runs
 
@@ -189,13 +206,32 @@ def run(args):
     scene = jl.Scene.from_validated(v, dtype=pixel_dtype(args, v))
     t = time.perf_counter()
     cli.status("rendering (compiling on first use)")
-    img = jl.render(scene)
+    if args.distributed:
+        # Every process renders its share of the blocks into a folder beside the output,
+        # named for the scene (a rerun reuses what a failed one finished); process 0
+        # puts the image together and writes it.
+        import hashlib
+        import json
+
+        from ._render import render_share
+
+        key = json.dumps([v, str(scene.camera.dtype)], sort_keys=True, default=str)
+        stage = out.parent / f".{out.name}.blocks-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
+        stage.mkdir(exist_ok=True)
+        img = render_share(scene, stage, index, count)
+        if img is None:
+            return 0  # process 0 writes the image
+    else:
+        img = jl.render(scene)
     cli.status(f"writing {out}")
     path = _io.write_image(out, img, exposure=scene.exposure)
+    if args.distributed:
+        _io.remove_temporary(stage)
     c = v["camera"]
     cli.stop_status()
+    over = f", {count} processes" if count > 1 else ""
     print(
         f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:.12g} R_S, "
-        f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s)"
+        f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s{over})"
     )
     return 0

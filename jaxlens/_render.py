@@ -163,14 +163,93 @@ def render(
     frames; captured rays are 0.
     """
     scene = as_scene(scene, sky, accuracy)
-    _kernel.verify(scene)
     single = scene.camera.batch_shape == ()
+    out = _run(*_prepared(scene, chunk_samples, dtype), progress)
+    return out[0] if single else out
+
+
+def _prepared(scene: Scene, chunk_samples: int, dtype):
+    """`(scene, plan, ray maps)` of a render: checked, with a frame axis, planned."""
+    _kernel.verify(scene)
     scene, dtype = _prepare(scene, dtype)
     p = plan(scene, chunk_samples=chunk_samples)
     with _compile_ahead(scene, p, dtype):
         maps = _maps_for(scene, p, dtype)
-    out = _run(scene, p, maps, progress)
-    return out[0] if single else out
+    return scene, p, maps
+
+
+def render_share(scene: Scene, stage, index: int, count: int, *,
+                 chunk_samples: int = CHUNK_SAMPLES, dtype=None):  # fmt: skip
+    """`render(scene)` as one of `count` processes (a scene of one camera): process
+    `index` renders every `count`-th block into the folder `stage` (one `.npy` a
+    block, saved atomically; blocks already there are skipped), and process 0 then
+    waits for every block and puts the image together, bitwise `render`'s (the same
+    blocks and programs). **Returns:** the image on process 0, `None` on the others."""
+    import time
+    from pathlib import Path
+
+    from . import _io
+
+    stage = Path(stage)
+    scene, p, maps = _prepared(scene, chunk_samples, dtype)
+    tasks = _tasks(scene, p)
+
+    def path(k):
+        return stage / f"{k:05d}.npy"
+
+    def finished():
+        return sum(1 for _ in stage.glob("[0-9]*.npy"))
+
+    from tqdm.auto import tqdm
+
+    with tqdm(total=len(tasks), desc="render", unit="block", delay=2.0, leave=False,
+              disable=index != 0) as bar:  # fmt: skip
+        for k in range(index, len(tasks), count):
+            if not path(k).exists():
+                block = np.asarray(_call(scene, p, maps, *tasks[k]))
+                with _io.atomic_output(path(k)) as tmp:
+                    np.save(tmp, block)
+            bar.update(finished() - bar.n)
+        if index != 0:
+            return None
+        while (n := finished()) < len(tasks):
+            bar.update(n - bar.n)
+            time.sleep(0.1)
+    cam = scene.camera
+    out = np.empty((cam.batch_shape[0], cam.height, cam.width, 3), np.float32)
+    for k, task in enumerate(tasks):
+        _store(out, p, task, np.load(path(k)))
+    return out[0]
+
+
+def _tasks(scene, p: Plan) -> list:
+    """The blocks of a render, in order: `((f0, fs), (r0, rs))` (first new frame and
+    row, and where the block starts)."""
+    cam = scene.camera
+    h = cam.height // 2 if p.pair else cam.height
+    return [(f, r) for f in starts(cam.batch_shape[0], p.frames) for r in starts(h, p.rows)]
+
+
+def _call(scene, p: Plan, maps, fblock, rblock):
+    """One block's pixels (dispatched, not waited for)."""
+    f0, r0 = fblock[1], rblock[1]
+    fb, n = p.frames, scene.camera.batch_shape[0]
+    m = maps if fb == n else jax.tree.map(lambda a: a[f0 : f0 + fb], maps)
+    return _block(frame(scene, slice(f0, f0 + fb)), p.kernel_key(), m,
+                  np.asarray(r0, scene.camera.dtype), p.rows, p.pair)  # fmt: skip
+
+
+def _store(out, p: Plan, task, block) -> None:
+    """Copy a block's new rows into the image batch `out` (N, H, W, 3)."""
+    (f0, fs), (r0, rs) = task
+    h, rows = out.shape[1], p.rows
+    block = np.asarray(block)[f0 - fs :]
+    frames = slice(f0, fs + p.frames)
+    if p.pair:
+        out[frames, r0 : rs + rows] = block[:, r0 - rs : rows]
+        out[frames, h - rs - rows : h - r0] = block[:, rows : 2 * rows - (r0 - rs)]
+    else:
+        out[frames, r0 : rs + rows] = block[:, r0 - rs :]
 
 
 def render_frames(cameras: Camera, sky: AbstractSky, **kwargs) -> np.ndarray:
@@ -180,49 +259,28 @@ def render_frames(cameras: Camera, sky: AbstractSky, **kwargs) -> np.ndarray:
 
 def _run(scene, p: Plan, maps, progress):
     cam = scene.camera
-    n, h, w = cam.batch_shape[0], cam.height, cam.width
-    fb, rows, pair = p.frames, p.rows, p.pair
-    key = p.kernel_key()
-    dtype = cam.dtype
-    frame_blocks = starts(n, fb)
-    row_blocks = starts(h // 2 if pair else h, rows)
-
-    def call(f0, r0):
-        m = maps if fb == n else jax.tree.map(lambda a: a[f0 : f0 + fb], maps)
-        return _block(frame(scene, slice(f0, f0 + fb)), key, m, np.asarray(r0, dtype), rows, pair)
-
     if p.blocks == 1:  # one block holds the whole batch, rows in image order
-        return np.array(call(0, 0))  # a writable NumPy copy
-    out = np.empty((n, h, w, 3), np.float32)
+        return np.array(_call(scene, p, maps, (0, 0), (0, 0)))  # a writable NumPy copy
+    out = np.empty((cam.batch_shape[0], cam.height, cam.width, 3), np.float32)
     bar = None
     if progress is not False:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=p.blocks, desc="render", unit="block", delay=0 if progress else 2.0,
                    leave=False)  # fmt: skip
-
-    def store(task, block):
-        (f0, fs), (r0, rs) = task
-        block = np.asarray(block)[f0 - fs :]
-        frames = slice(f0, fs + fb)
-        if pair:
-            out[frames, r0 : rs + rows] = block[:, r0 - rs : rows]
-            out[frames, h - rs - rows : h - r0] = block[:, rows : 2 * rows - (r0 - rs)]
-        else:
-            out[frames, r0 : rs + rows] = block[:, r0 - rs :]
-        if bar is not None:
-            bar.update(1)
-
     pending = None
     try:
-        for fblock in frame_blocks:
-            for rblock in row_blocks:
-                # Dispatch the next block before copying the previous one to the host.
-                result = call(fblock[1], rblock[1])
-                if pending is not None:
-                    store(*pending)
-                pending = ((fblock, rblock), result)
-        store(*pending)
+        for task in _tasks(scene, p):
+            # Dispatch the next block before copying the previous one to the host.
+            result = _call(scene, p, maps, *task)
+            if pending is not None:
+                _store(out, p, *pending)
+                if bar is not None:
+                    bar.update(1)
+            pending = (task, result)
+        _store(out, p, *pending)
+        if bar is not None:
+            bar.update(1)
     finally:
         if bar is not None:
             bar.close()

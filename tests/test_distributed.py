@@ -193,3 +193,24 @@ def test_fits_over_two_processes_are_bitwise_one_process(tmp_path):
     assert [row["image"] for row in lines[0]] == paths
     assert "blank" in lines[0][0]["error"] and lines[0][1]["converged"]
     assert abs(lines[0][1]["distance"] / 14.0 - 1) < 0.01
+
+
+def test_a_large_render_over_two_processes_is_bitwise_one_process(tmp_path):
+    # 1024 x 768 at 2 x 2 samples a pixel: 3.1e6 samples, two blocks of the default size.
+    env = _command_env(tmp_path / "cache")
+    argv = ["render", "--size", "1024x768", "--yaw-deg", "10"]
+    one = _jaxlens([*argv, "-o", str(tmp_path / "one.exr")], env)
+    assert one.returncode == 0, one.stderr[-3000:]
+    (tmp_path / "two").mkdir()
+    two = _jaxlens([*argv, "-o", str(tmp_path / "two" / "two.exr"), "--processes", "2"], env)
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert "2 processes" in two.stdout
+    assert [p.name for p in (tmp_path / "two").iterdir()] == ["two.exr"]  # no blocks left
+    a, b = (jl_read(tmp_path / name) for name in ("one.exr", "two/two.exr"))
+    assert a.shape == (768, 1024, 3) and np.array_equal(a, b)
+
+
+def jl_read(path):
+    import jaxlens as jl
+
+    return np.asarray(jl.read_image(str(path)))
