@@ -2,11 +2,9 @@
 pan, zoom), and optionally its frames as image files. Frames are rendered in batched
 compiled calls of one size and streamed to the files as they come."""
 
-import hashlib
 import json
 import math
 import time
-from glob import escape as glob_escape
 from pathlib import Path
 
 import numpy as np
@@ -129,12 +127,13 @@ def run(args):
         if args.distributed:
             key = json.dumps([scene, kind, values.tolist(), str(np.dtype(dtype))],
                              sort_keys=True, default=str)  # fmt: skip
-            stage = _stage(out, hashlib.sha256(key.encode()).hexdigest()[:16])
-            earlier = _finished(stage)
+            stage = _multi.Stage(out, "frames", key)
+            earlier = stage.finished()
             _render_share(stage, render_group, frames, group, index, count, bar)
             if index != 0:
                 return 0  # process 0 writes the files
-            rendered = _collected(stage, frames, bar)
+            stage.wait(frames, bar)
+            rendered = (stage.load(i) for i in range(frames))
         else:
             rendered = (img for lo in range(0, frames, group) for img in render_group(lo))
         with _io.frame_folder(frames_dir, args.frame_format) as save:
@@ -148,8 +147,7 @@ def run(args):
 
             write(out, stream(), exposure=exposure, fps=fps)
     if args.distributed:
-        for folder in out.parent.glob(f".{glob_escape(out.name)}.frames-*"):
-            _io.remove_temporary(folder)  # this run's, and any an older command left
+        stage.remove()
     where = f" and {frames} frames in {frames_dir}/" if frames_dir is not None else ""
     cli.stop_status()
     over = f", {count} processes" if count > 1 else ""
@@ -160,60 +158,23 @@ def run(args):
     return 0
 
 
-def _stage(out: Path, key: str) -> Path:
-    """The folder beside `out` where the processes of a distributed run put their frames
-    (`NNNNN.npy`, linear float32), named for the animation's settings: a rerun of the
-    same command finds the frames an interrupted one finished."""
-    folder = out.parent / f".{out.name}.frames-{key}"
-    folder.mkdir(exist_ok=True)
-    return folder
-
-
-def _frame_file(stage: Path, i: int) -> Path:
-    return stage / f"{i:05d}.npy"
-
-
-def _finished(stage: Path) -> int:
-    return sum(1 for _ in stage.glob("[0-9]*.npy"))
-
-
 def _render_share(stage, render_group, frames, group, index, count, bar):
-    """This process's share of the groups of frames, each frame saved atomically into
-    `stage` by its owner; groups a previous run finished are skipped."""
+    """This process's share of the groups of frames, each frame saved into `stage` by
+    its owner; groups a previous run finished are skipped."""
     starts = range(0, frames, group)
     for g in _multi.share(len(starts), index, count):
         lo = starts[g]
         todo = range(lo, min(lo + group, frames))
-        if all(_frame_file(stage, i).exists() for i in todo):
+        if all(stage.has(i) for i in todo):
             continue
         for i, img in zip(todo, render_group(lo), strict=True):
-            with _io.atomic_output(_frame_file(stage, i)) as tmp:
-                np.save(tmp, img)
-        bar.update(_finished(stage) - bar.n)
-
-
-def _collected(stage, frames, bar):
-    """Process 0: wait until every frame is in `stage` (the bar counting them), then
-    yield them in order."""
-    while (n := _finished(stage)) < frames:
-        bar.update(n - bar.n)
-        time.sleep(0.1)
-    bar.update(frames - bar.n)
-    for i in range(frames):
-        yield np.load(_frame_file(stage, i))
+            stage.save(i, img)
+        bar.update(stage.finished() - bar.n)
 
 
 def kept_frames(args) -> str:
     """What a failed distributed run left for the next: the finished frames."""
-    out = Path(args.output)
-    folders = sorted(out.parent.glob(f".{glob_escape(out.name)}.frames-*"))
-    n = sum(_finished(f) for f in folders)
-    if n == 0:
-        for folder in folders:
-            _io.remove_temporary(folder)  # nothing in it worth keeping
-        return f"nothing was written to {out}"
-    return (f"nothing was written to {out}; {n} finished frames are kept in "
-            f"{folders[-1]} and the same command continues from them")  # fmt: skip
+    return _multi.kept(args.output, "frames")
 
 
 # Frames rendered in one call: as many as fit in this many bytes of float32 RGB.

@@ -176,17 +176,7 @@ def register(sub):
 
 def kept_blocks(args) -> str:
     """What a failed distributed render left for the next: its finished blocks."""
-    from glob import escape
-
-    out = Path(args.output)
-    folders = sorted(out.parent.glob(f".{escape(out.name)}.blocks-*"))
-    n = sum(1 for f in folders for _ in f.glob("[0-9]*.npy"))
-    if n == 0:
-        for folder in folders:
-            _io.remove_temporary(folder)
-        return f"nothing was written to {out}"
-    return (f"nothing was written to {out}; {n} finished blocks are kept in {folders[-1]} "
-            "and the same command continues from them")  # fmt: skip
+    return _multi.kept(args.output, "blocks")
 
 
 def run(args):
@@ -210,14 +200,12 @@ def run(args):
         # Every process renders its share of the blocks into a folder beside the output,
         # named for the scene (a rerun reuses what a failed one finished); process 0
         # puts the image together and writes it.
-        import hashlib
         import json
 
         from ._render import render_share
 
         key = json.dumps([v, str(scene.camera.dtype)], sort_keys=True, default=str)
-        stage = out.parent / f".{out.name}.blocks-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
-        stage.mkdir(exist_ok=True)
+        stage = _multi.Stage(out, "blocks", key)
         img = render_share(scene, stage, index, count)
         if img is None:
             return 0  # process 0 writes the image
@@ -226,7 +214,7 @@ def run(args):
     cli.status(f"writing {out}")
     path = _io.write_image(out, img, exposure=scene.exposure)
     if args.distributed:
-        _io.remove_temporary(stage)
+        stage.remove()
     c = v["camera"]
     cli.stop_status()
     over = f", {count} processes" if count > 1 else ""

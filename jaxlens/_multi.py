@@ -282,3 +282,77 @@ def _last_line(path: Path) -> str:
         return ""
     lines = [s.strip() for s in text.replace("\r", "\n").splitlines() if s.strip()]
     return lines[-1] if lines else ""
+
+
+class Stage:
+    """The folder beside an output where the processes of a distributed command put
+    their shares (`NNNNN.npy`: one frame or block each, saved atomically by its owner),
+    named for the work's settings (`key`) so that a rerun of a failed command finds
+    what it finished. `what`: the items' name ("frames", "blocks")."""
+
+    def __init__(self, out: Path, what: str, settings: str):
+        import hashlib
+
+        key = hashlib.sha256(settings.encode()).hexdigest()[:16]
+        self.out, self.what = Path(out), what
+        self.folder = self.out.parent / f".{self.out.name}.{what}-{key}"
+        self.folder.mkdir(exist_ok=True)
+
+    def path(self, i: int) -> Path:
+        return self.folder / f"{i:05d}.npy"
+
+    def has(self, i: int) -> bool:
+        return self.path(i).exists()
+
+    def save(self, i: int, array) -> None:
+        import numpy as np
+
+        from . import _io
+
+        with _io.atomic_output(self.path(i)) as tmp:
+            np.save(tmp, np.asarray(array))
+
+    def finished(self) -> int:
+        """How many items are there (temporaries, hidden, not counted)."""
+        return sum(1 for _ in self.folder.glob("[0-9]*.npy"))
+
+    def wait(self, total: int, bar) -> None:
+        """Until all `total` items are there, the progress bar counting them."""
+        while (n := self.finished()) < total:
+            bar.update(n - bar.n)
+            time.sleep(0.1)
+        bar.update(total - bar.n)
+
+    def load(self, i: int):
+        import numpy as np
+
+        return np.load(self.path(i))
+
+    def remove(self) -> None:
+        """This folder, and any an older command for the same output left."""
+        from . import _io
+
+        for folder in _folders(self.out, self.what):
+            _io.remove_temporary(folder)
+
+
+def _folders(out: Path, what: str) -> list[Path]:
+    from glob import escape
+
+    return sorted(out.parent.glob(f".{escape(out.name)}.{what}-*"))
+
+
+def kept(out, what: str) -> str:
+    """What a failed distributed command left for the next: the finished items in the
+    stage folders of `out` (empty folders are removed)."""
+    out = Path(out)
+    folders = _folders(out, what)
+    n = sum(1 for f in folders for _ in f.glob("[0-9]*.npy"))
+    if n == 0:
+        from . import _io
+
+        for folder in folders:
+            _io.remove_temporary(folder)
+        return f"nothing was written to {out}"
+    return (f"nothing was written to {out}; {n} finished {what} are kept in {folders[-1]} "
+            "and the same command continues from them")  # fmt: skip

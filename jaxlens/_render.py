@@ -181,44 +181,27 @@ def _prepared(scene: Scene, chunk_samples: int, dtype):
 def render_share(scene: Scene, stage, index: int, count: int, *,
                  chunk_samples: int = CHUNK_SAMPLES, dtype=None):  # fmt: skip
     """`render(scene)` as one of `count` processes (a scene of one camera): process
-    `index` renders every `count`-th block into the folder `stage` (one `.npy` a
-    block, saved atomically; blocks already there are skipped), and process 0 then
-    waits for every block and puts the image together, bitwise `render`'s (the same
-    blocks and programs). **Returns:** the image on process 0, `None` on the others."""
-    import time
-    from pathlib import Path
-
-    from . import _io
-
-    stage = Path(stage)
-    scene, p, maps = _prepared(scene, chunk_samples, dtype)
-    tasks = _tasks(scene, p)
-
-    def path(k):
-        return stage / f"{k:05d}.npy"
-
-    def finished():
-        return sum(1 for _ in stage.glob("[0-9]*.npy"))
-
+    `index` renders every `count`-th block into `stage` (a `_multi.Stage`; blocks
+    already there are skipped), and process 0 then waits for every block and puts the
+    image together, bitwise `render`'s (the same blocks and programs).
+    **Returns:** the image on process 0, `None` on the others."""
     from tqdm.auto import tqdm
 
+    scene, p, maps = _prepared(scene, chunk_samples, dtype)
+    tasks = _tasks(scene, p)
     with tqdm(total=len(tasks), desc="render", unit="block", delay=2.0, leave=False,
               disable=index != 0) as bar:  # fmt: skip
         for k in range(index, len(tasks), count):
-            if not path(k).exists():
-                block = np.asarray(_call(scene, p, maps, *tasks[k]))
-                with _io.atomic_output(path(k)) as tmp:
-                    np.save(tmp, block)
-            bar.update(finished() - bar.n)
+            if not stage.has(k):
+                stage.save(k, _call(scene, p, maps, *tasks[k]))
+            bar.update(stage.finished() - bar.n)
         if index != 0:
             return None
-        while (n := finished()) < len(tasks):
-            bar.update(n - bar.n)
-            time.sleep(0.1)
+        stage.wait(len(tasks), bar)
     cam = scene.camera
     out = np.empty((cam.batch_shape[0], cam.height, cam.width, 3), np.float32)
     for k, task in enumerate(tasks):
-        _store(out, p, task, np.load(path(k)))
+        _store(out, p, task, stage.load(k))
     return out[0]
 
 
