@@ -162,6 +162,8 @@ def run(args):
         """Image `i`'s report (or JSON line), and whether it failed."""
         image = images[i]
         which = f" ({i + 1} of {len(images)})" if several else ""
+        if count > 1:  # process 0's status line: the rounds of all the processes
+            which = f" ({i + 1}-{min(i + count, len(images))} of {len(images)}, {count} processes)"
         cli.status(f"fitting {image}{which} (compiling on first use)")  # ~30 s, most compiling
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
