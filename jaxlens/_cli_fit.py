@@ -162,8 +162,8 @@ def run(args):
         """Image `i`'s report (or JSON line), and whether it failed."""
         image = images[i]
         which = f" ({i + 1} of {len(images)})" if several else ""
-        if count > 1:  # process 0's status line: the rounds of all the processes
-            which = f" ({i + 1}-{min(i + count, len(images))} of {len(images)}, {count} processes)"
+        if count > 1:  # process 0's status line
+            which = f" ({i + 1} of {len(images)}, over {count} processes)"
         cli.status(f"fitting {image}{which} (compiling on first use)")  # ~30 s, most compiling
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
@@ -179,16 +179,19 @@ def run(args):
 
     failed = 0
     if args.distributed:
-        # Each process fits every `count`-th image; after each round process 0 prints
-        # the round's results in the images' order (gathered through JAX).
-        for lo in range(0, len(images), count):
-            text, bad = one(lo + index) if lo + index < len(images) else ("", False)
-            texts = _multi.gather_texts(f"{int(bad)}{text}" if lo + index < len(images) else "")
-            for t in texts:
-                if t and index == 0:
-                    cli.stop_status()
-                    print(t[1:], flush=True)
-                failed += int(t[:1] == "1")
+        # Each process fits every `count`-th image and posts each result to the job's
+        # key-value store; process 0, its own share done, prints them in order.
+        for i in _multi.share(len(images), index, count):
+            text, bad = one(i)
+            _multi.post(f"fit/{i}", f"{int(bad)}{text}")
+        if index != 0:
+            return 0
+        cli.status("waiting for the other processes' fits")
+        for i in range(len(images)):
+            text = _multi.collect(f"fit/{i}")
+            cli.stop_status()
+            print(text[1:], flush=True)
+            failed += text[:1] == "1"
     else:
         for i in range(len(images)):
             text, bad = one(i)
@@ -197,9 +200,8 @@ def run(args):
             failed += bad
     if failed:
         cli.stop_status()
-        if index == 0:
-            print(f"jaxlens fit: error: {failed} of {len(images)} images could not be "
-                  "fitted (see their lines)", file=sys.stderr)  # fmt: skip
+        print(f"jaxlens fit: error: {failed} of {len(images)} images could not be "
+              "fitted (see their lines)", file=sys.stderr)  # fmt: skip
         return 2
     return 0
 

@@ -3,8 +3,8 @@
 One code path for one process, several local processes and a cluster. A command run
 with `--distributed` joins the job (`join`: the coordinator from `launch`'s variables,
 or the cluster's own, e.g. SLURM's), takes its share of the work (`share`) and leaves
-the putting together to process 0: the frames of an animation through files in a
-folder beside the output, fit results through JAX's collectives (`gather_texts`).
+the putting together to process 0: frames and blocks through files in a folder beside
+the output (`Stage`), fit results through the job's key-value store (`post`, `collect`).
 `--processes N` runs the command as N local processes (`launch`) through the same
 start-up a cluster's launcher gives, and stops them all when one fails.
 """
@@ -101,20 +101,28 @@ def share(n: int, index: int, count: int) -> range:
     return range(index, n, count)
 
 
-def gather_texts(text: str) -> list[str]:
-    """Every process's `text`, in process order, on every process (JAX collectives:
-    nothing else is shared between the processes of a cluster)."""
-    import jax
-    import numpy as np
-    from jax.experimental import multihost_utils
+def _client():
+    """The job's coordination-service client (JAX keeps it once `join` has run)."""
+    from jax._src import distributed
 
-    raw = np.frombuffer(text.encode(), np.uint8)
-    sizes = multihost_utils.process_allgather(np.asarray([raw.size], np.int64))
-    sizes = np.asarray(sizes).reshape(-1)
-    padded = np.zeros(int(sizes.max()) if sizes.size else 0, np.uint8)
-    padded[: raw.size] = raw
-    every = np.asarray(multihost_utils.process_allgather(padded)).reshape(jax.process_count(), -1)
-    return [bytes(row[: int(s)]).decode() for row, s in zip(every, sizes, strict=True)]
+    client = distributed.global_state.client
+    if client is None:
+        raise RuntimeError("not a process of a multi-process job (no jax.distributed client)")
+    return client
+
+
+def post(key: str, text: str) -> None:
+    """Leave `text` under `key` in the job's key-value store (JAX's coordination
+    service): a result for process 0, which need not be waiting for it."""
+    _client().key_value_set(f"jaxlens/{key}", text)
+
+
+def collect(key: str) -> str:
+    """The text a process `post`ed under `key`, waiting for it as long as the job runs
+    (a process that dies ends the job through the service's heartbeats). Unlike a
+    collective, this has no deadline for the others to arrive: gloo gives up after
+    30 s, and a fit can take minutes longer on one process than on another."""
+    return _client().blocking_key_value_get(f"jaxlens/{key}", _SHUTDOWN * 1000)
 
 
 def free_port() -> int:
@@ -124,21 +132,27 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def strip_processes(argv: list[str]) -> list[str]:
-    """`argv` without its `--processes N` / `--processes=N`."""
-    out, skip = [], False
+def worker_argv(argv: list[str], command: str) -> list[str]:
+    """The command line of each process `launch` starts: `argv` without its
+    `--processes N` (`--processes=N`, or an abbreviation argparse took for it), with
+    `--distributed` right after the command's name (before any `--`)."""
+    out, skip, place = [], False, None
     for a in argv:
+        name = a.split("=", 1)[0]
         if skip:
             skip = False
-        elif a == "--processes":
-            skip = True
-        elif not a.startswith("--processes="):
+        elif len(name) > 3 and "--processes".startswith(name) and "--" not in out:
+            skip = "=" not in a
+        else:
             out.append(a)
-    return out
+            if place is None and a == command:
+                place = len(out)
+    place = len(out) if place is None else place
+    return out[:place] + ["--distributed"] + out[place:]
 
 
 def launch(command: str, argv: list[str], processes: int, on_failure=None) -> int:
-    """Run `jaxlens ARGV --distributed` as `processes` local processes joined by
+    """Run `jaxlens ARGV` (`worker_argv`) as `processes` local processes joined by
     `jax.distributed` (a free port of this host as the coordinator) and wait for them.
 
     Process 0 shares this process's terminal (its progress and results); the others
@@ -166,7 +180,7 @@ def launch(command: str, argv: list[str], processes: int, on_failure=None) -> in
             files.append(log)
             first = i == 0
             procs.append(subprocess.Popen(
-                [sys.executable, "-m", "jaxlens", *argv, "--distributed"], env=env,
+                [sys.executable, "-m", "jaxlens", *argv], env=env,
                 stdin=subprocess.DEVNULL, stdout=None if first else log,
                 stderr=subprocess.PIPE if first else log, start_new_session=True))  # fmt: skip
         relay = _Relay(procs[0].stderr, files[0], stop)

@@ -199,8 +199,8 @@ def main(argv=None) -> int:
                                signal.SIGTERM: _terminate})  # fmt: skip
 
                 kept = getattr(args, "kept", None)  # what a failed run leaves for a rerun
-                return _multi.launch(command, _multi.strip_processes(argv), args.processes,
-                                     kept and (lambda: kept(args)))  # fmt: skip
+                return _multi.launch(command, _multi.worker_argv(argv, args.command),
+                                     args.processes, kept and (lambda: kept(args)))  # fmt: skip
         spinner = _spinner.Spinner(command).__enter__()  # on a terminal: a status line
         if getattr(args, "uses_jax", True):
             _spinner.status("loading JAX")

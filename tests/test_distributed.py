@@ -214,3 +214,15 @@ def jl_read(path):
     import jaxlens as jl
 
     return np.asarray(jl.read_image(str(path)))
+
+
+def test_the_processes_command_line():
+    from jaxlens._multi import worker_argv
+
+    assert worker_argv(["fit", "a.png", "--processes", "2", "--json"], "fit") == [
+        "fit", "--distributed", "a.png", "--json"]  # fmt: skip
+    assert worker_argv(["render", "--proc=4", "-o", "x.png"], "render") == [
+        "render", "--distributed", "-o", "x.png"]  # fmt: skip
+    # After `--` everything is an argument, an image named like the option too.
+    assert worker_argv(["fit", "--pro", "2", "--", "--processes"], "fit") == [
+        "fit", "--distributed", "--", "--processes"]  # fmt: skip
