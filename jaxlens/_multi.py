@@ -29,11 +29,11 @@ PROCESS_ID = "JAXLENS_PROCESS_ID"
 # a process that fails after that has cost nothing.
 DONE = "JAXLENS_DONE_FILE"
 
-# Seconds a process that has done its share waits at exit for the others (JAX's shutdown
-# barrier): process 0 writes the results after everyone's share, and a long video takes
-# a while to encode. A process that dies ends the others sooner: the coordination
-# service notices its missing heartbeats within 100 s.
-_SHUTDOWN = 24 * 3600
+# Seconds a process waits for another's result or for process 0 to finish (`collect`):
+# process 0 writes the results after everyone's share, and a long video takes a while to
+# encode. A process that dies ends the others sooner: the coordination service notices
+# its missing heartbeats within 100 s.
+_WAIT = 24 * 3600
 
 # Seconds a stopped process has to unwind (remove its temporary files) before it is
 # killed.
@@ -67,10 +67,9 @@ def join() -> tuple[int, int]:
     try:
         if address:
             jax.distributed.initialize(address, num_processes=int(os.environ[PROCESSES]),
-                                       process_id=int(os.environ[PROCESS_ID]),
-                                       shutdown_timeout_seconds=_SHUTDOWN)  # fmt: skip
+                                       process_id=int(os.environ[PROCESS_ID]))  # fmt: skip
         else:
-            jax.distributed.initialize(shutdown_timeout_seconds=_SHUTDOWN)
+            jax.distributed.initialize()
     except (ValueError, RuntimeError) as e:
         if address:
             raise
@@ -122,7 +121,7 @@ def collect(key: str) -> str:
     (a process that dies ends the job through the service's heartbeats). Unlike a
     collective, this has no deadline for the others to arrive: gloo gives up after
     30 s, and a fit can take minutes longer on one process than on another."""
-    return _client().blocking_key_value_get(f"jaxlens/{key}", _SHUTDOWN * 1000)
+    return _client().blocking_key_value_get(f"jaxlens/{key}", _WAIT * 1000)
 
 
 def free_port() -> int:
@@ -225,9 +224,19 @@ def launch(command: str, argv: list[str], processes: int, on_failure=None) -> in
 
 
 def finished() -> None:
-    """Say, as process 0 of a `launch`, that the command's results are written."""
-    if os.environ.get(PROCESS_ID) == "0" and os.environ.get(DONE):
-        Path(os.environ[DONE]).touch()
+    """The end of a command that ran to its end in a job (exit status 0, or 2 for a
+    fit's bad image): process 0 says that the results are written (to `launch`, and to
+    the job), the others wait for that before they exit. So all reach JAX's shutdown
+    barrier together: a process that came to it with its share done would otherwise
+    wait there for process 0, and older JAX gives up after 5 minutes."""
+    import jax
+
+    if jax.process_index() == 0:
+        if os.environ.get(DONE):
+            Path(os.environ[DONE]).touch()
+        post("done", "1")
+    else:
+        collect("done")
 
 
 def _wait(procs) -> tuple[int, int] | None:
