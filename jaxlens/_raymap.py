@@ -27,14 +27,19 @@ from ._util import fusion_barrier, is_concrete
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
 _HERMITE_C = math.pi / 384.0
+# Slopes from fourth-order differences of the knot values raise the largest error by up
+# to 15 % at equal knots (measured from D = 1.2 to 1e12): 3.6 % more knots make up for it.
+_DIFFERENCE_C = 1.15 * _HERMITE_C
 _REL_START = 1e-13  # first knot at alpha_sh * (1 + 1e-13): beyond float64 conditioning
 _NEWTON = 3  # Newton steps of `solve` on a knot interval's cubic (~1e-6 -> 1e-11 -> 0)
 
 
-def knots_for(accuracy: float, span: float) -> int:
+def knots_for(accuracy: float, span: float, exact_slopes: bool = True) -> int:
     """Number of knots for a target interpolation error `accuracy` (radians) over a
-    $\\tau$-span `span`, with a safety factor of 10 on the error model."""
-    h = (accuracy / (10.0 * _HERMITE_C)) ** 0.25
+    $\\tau$-span `span`, with a safety factor of 10 on the error model, for exact or
+    (`exact_slopes=False`) difference slopes."""
+    c = _HERMITE_C if exact_slopes else _DIFFERENCE_C
+    h = (accuracy / (10.0 * c)) ** 0.25
     return int(min(max(math.ceil(span / h) + 1, 64), 200_000))
 
 
@@ -102,7 +107,7 @@ class RayMap(eqx.Module):
         if knots is None:
             # The span is at most ~ln(pi / (alpha_sh 1e-13)); alpha_sh >= b_c/D.
             span_bound = 30.0 + 2.0 * math.log(10.0) + 25.0
-            knots = knots_for(accuracy, span_bound)
+            knots = knots_for(accuracy, span_bound, exact_slopes)
         if not 0.0 < alpha_max <= math.pi:
             raise ValueError(f"alpha_max={alpha_max!r} must be in (0, pi] radians")
         settings = dict(knots=int(knots), max_windings=float(max_windings), captured=captured,

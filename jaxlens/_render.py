@@ -26,7 +26,7 @@ from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
 from ._raymap import RayMap
 from ._scene import Scene
 from ._sky import AbstractSky
-from ._trace import TABLE_ITERATIONS
+from ._trace import TABLE_SETTINGS
 from ._util import compile_ahead, is_concrete
 
 
@@ -53,11 +53,11 @@ def _map_dtype(dtype):
 
 @eqx.filter_jit
 def _build_map(distance, accuracy, dtype):
-    # One compiled table builder for every distance of an accuracy, with the R_F
-    # duplication steps of `trace`'s table (3e-14 rad; more add compile time only).
-    # Returned in the pixel dtype with a batch axis: no eager op (each a small compile
-    # in a fresh process) between it and the block program.
-    ray_map = RayMap.build(distance, accuracy=accuracy, iterations=TABLE_ITERATIONS)
+    # One compiled table builder for every distance of an accuracy, as `trace`'s table
+    # builds it (`TABLE_SETTINGS`). Returned in the pixel dtype with a batch axis: no
+    # eager op (each a small compile in a fresh process) between it and the block
+    # program.
+    ray_map = RayMap.build(distance, accuracy=accuracy, **TABLE_SETTINGS)
     return jax.tree.map(lambda a: a[None], ray_map.astype(dtype))
 
 
@@ -331,7 +331,7 @@ def _render_array(scene, p: Plan, ray_map):
     # The scene's values are checked already: on the host (eager) or by `checked`.
     cam = scene.camera
     if p.geometry == "table" and ray_map is None:
-        ray_map = RayMap.build(cam.distance, accuracy=scene.accuracy)
+        ray_map = RayMap.build(cam.distance, accuracy=scene.accuracy, **TABLE_SETTINGS)
     if ray_map is not None:
         ray_map = ray_map.astype(cam.dtype)
     rows = cam.height // 2 if p.pair else cam.height
