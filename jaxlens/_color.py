@@ -8,6 +8,7 @@ $I_\\nu/\\nu^3$, exactly a blackbody of temperature $gT$ (`"spectral"`); the
 `"bolometric"` mode keeps the colour and scales the intensity by $g^4$.
 """
 
+import functools
 import math
 
 import jax.numpy as jnp
@@ -76,26 +77,34 @@ def _build_table():
     return np.concatenate([np.log(y / ref)[:, None], rgb], axis=1)  # (NT, 4)
 
 
-_TABLE = _build_table()
 _DLOG_T = (_LOG_T1 - _LOG_T0) / (_NT - 1)
-# End slopes of ln Y in ln T, for linear extrapolation beyond the table.
-_SLOPE_LO = float((_TABLE[1, 0] - _TABLE[0, 0]) / _DLOG_T)  # Python floats: weak types
-_SLOPE_HI = float((_TABLE[-1, 0] - _TABLE[-2, 0]) / _DLOG_T)
+
+
+@functools.cache
+def _table():
+    """The table and the end slopes of ln Y in ln T (for linear extrapolation beyond
+    it), made on first use: the quadrature takes ~0.12 s, a third of importing the
+    renderer, and most scenes have no blackbody."""
+    table = _build_table()
+    lo = float((table[1, 0] - table[0, 0]) / _DLOG_T)  # Python floats: weak types
+    hi = float((table[-1, 0] - table[-2, 0]) / _DLOG_T)
+    return table, lo, hi
 
 
 def _lookup(log_t):
     """Linear interpolation of the table at $\\ln T$: `(log Y, r, g, b)` `(..., 4)`.
     Chromaticity is held at the table's ends; $\\ln Y$ continues with the end slopes
     (Rayleigh-Jeans, $Y \\propto T$, above $10^6$ K)."""
-    table = jnp.asarray(_TABLE, log_t.dtype)
+    values, slope_lo, slope_hi = _table()
+    table = jnp.asarray(values, log_t.dtype)
     s = (log_t - _LOG_T0) / _DLOG_T
     i = jnp.clip(jnp.floor(s), 0, _NT - 2)
     f = jnp.clip(s - i, 0.0, 1.0)
     i = i.astype(jnp.int32)
     lo, hi = table[i], table[i + 1]
     val = lo + f[..., None] * (hi - lo)
-    below = table[0, 0] + _SLOPE_LO * (log_t - _LOG_T0)
-    above = table[-1, 0] + _SLOPE_HI * (log_t - _LOG_T1)
+    below = table[0, 0] + slope_lo * (log_t - _LOG_T0)
+    above = table[-1, 0] + slope_hi * (log_t - _LOG_T1)
     log_y = jnp.where(s < 0, below, jnp.where(s > _NT - 1, above, val[..., 0]))
     return log_y, val[..., 1:]
 
