@@ -23,6 +23,7 @@ from jaxtyping import Array, Float
 from . import _kernel
 from ._camera import Camera
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
+from ._programs import Stored
 from ._raymap import RayMap
 from ._scene import Scene
 from ._sky import AbstractSky
@@ -61,6 +62,12 @@ def _build_map(distance, accuracy, dtype):
     return jax.tree.map(lambda a: a[None], ray_map.astype(dtype))
 
 
+# Kept between processes where the CLI keeps its cache; the result's structure (the
+# fields `RayMap.build` fills here) is known without tracing.
+_MAP_STRUCTURE = jax.tree.structure(RayMap(*(0.0,) * 6))
+_build_map = Stored(_build_map, lambda *_: _MAP_STRUCTURE)
+
+
 def ray_maps(distances, accuracy: float, dtype) -> RayMap:
     """Ray maps of a batch of distances `(N,)` (units of R_S), stacked: built in
     float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`."""
@@ -86,6 +93,9 @@ def _block(scene, plan, maps, row0, rows, pair):
         camera, m = jax.tree.map(lambda a: a[0], (scene.camera, maps))
         return one(camera, m)[None].astype(jnp.float32)
     return eqx.filter_vmap(one)(scene.camera, maps).astype(jnp.float32)
+
+
+_block = Stored(_block, lambda *_: jax.tree.structure(0))  # one array
 
 
 def _prepare(scene: Scene, dtype):

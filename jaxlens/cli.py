@@ -58,8 +58,9 @@ def enable_x64():
 
 
 def _configure_cache():
-    """Keep compiled programs between runs (XLA's persistent cache): the first run
-    compiles for several seconds, later ones start at once. The folder is
+    """Keep compiled programs between runs (XLA's persistent cache), and the traced
+    programs of the render (`_programs`, in its folder `jaxlens-programs`): the first
+    run compiles for several seconds, later ones start at once. The folder is
     `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it is
     set; else `~/.cache/jaxlens/xla`. An empty value turns it off."""
     folder = os.environ.get("JAXLENS_CACHE_DIR")
@@ -80,6 +81,9 @@ def _configure_cache():
     # Every program: the ones under a second add up (1.8 s of compiling was left in a
     # render with the cache warm when only those over 0.5 s were kept).
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    from . import _programs
+
+    _programs.use_folder(folder)
 
 
 class _Version(argparse.Action):

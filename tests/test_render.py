@@ -232,6 +232,48 @@ def test_the_block_program_compiled_ahead_is_the_one_the_render_runs():
     np.testing.assert_allclose(frames[1], single, atol=1e-7)
 
 
+def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_path):
+    # Where the CLI keeps its cache, the render's programs are kept traced (jax.export):
+    # a later process calls them without tracing the renderer. A fresh process is
+    # played by forgetting the programs held in memory.
+    from jaxlens import _programs, _render
+
+    scene = jl.Scene(Camera(20.0, math.radians(50.0), 18, 12, supersample=2), SKY)
+    direct = render(scene)
+    traced, active = [], [True]
+
+    def listen(event, duration, **kwargs):
+        if active[0] and event == "/jax/core/compile/jaxpr_trace_duration":
+            traced.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    _programs.use_folder(tmp_path)
+    stored = (_render._block, _render._build_map)
+    try:
+        first = render(scene)
+        kept = sorted((tmp_path / "jaxlens-programs").glob("*.jaxexport"))
+        assert len(kept) == 2, kept
+        for f in stored:
+            f._programs.clear()
+        traced.clear()
+        again = render(scene)
+        assert "_block" not in traced and "_build_map" not in traced, traced
+        # A damaged file is made again, not trusted.
+        kept[0].write_bytes(b"not a program")
+        for f in stored:
+            f._programs.clear()
+        repaired = render(scene)
+        assert kept[0].read_bytes() != b"not a program"
+    finally:
+        _programs.use_folder(None)
+        active[0] = False
+        unregister = getattr(jax.monitoring, "unregister_event_duration_listener", None)
+        if unregister is not None:
+            unregister(listen)
+    for image in (first, again, repaired):
+        np.testing.assert_array_equal(image, direct)
+
+
 # A small float32 scene rendered in many blocks by the memory and the progress tests:
 # one compiled block program for both.
 SMALL_SKY = GaussianStar(np.float32(0.02)) + Uniform(np.float32(0.1))

@@ -1,0 +1,162 @@
+"""Traced programs kept between processes (`jax.export`).
+
+XLA's persistent cache keeps compiled programs, but a fresh process still traces and
+lowers each program before it can look one up: 0.6 s of a 960 x 540 render whose
+compiled programs were all in the cache. Where a folder is set (`use_folder`: the
+command line sets its cache folder), a `Stored` function also keeps its lowered
+program (StableHLO, serialised by `jax.export`) in `<folder>/programs`, under a digest
+of everything that decides it, and a later process calls that program without tracing
+the function; XLA's cache then supplies the compiled code.
+
+What decides a program, and so goes into its key: jaxlens's own source files, the
+versions of JAX and jaxlib, the backend, `jax_enable_x64`, the function, and its
+arguments' structure, static values, shapes and dtypes. A call whose static values
+have no faithful text (an object shown by its address) is not stored, nor is one on
+more than one device; a stored file that cannot be read is made again.
+"""
+
+import functools
+import hashlib
+import os
+import pathlib
+import tempfile
+
+import equinox as eqx
+import jax
+import numpy as np
+
+_FOLDER: pathlib.Path | None = None
+
+
+def use_folder(folder) -> None:
+    """Keep programs in `folder / "jaxlens-programs"` (`None`: keep none, the default)."""
+    global _FOLDER
+    try:
+        import flatbuffers  # noqa: F401  (jax.export's serialisation needs it)
+    except ImportError:
+        folder = None
+    _FOLDER = None if folder is None else pathlib.Path(folder) / "jaxlens-programs"
+
+
+@functools.cache
+def _code_digest() -> str:
+    """Digest of jaxlens's source files, the JAX versions and the backend."""
+    import jaxlib
+
+    h = hashlib.sha256()
+    root = pathlib.Path(__file__).parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    h.update(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
+    return h.hexdigest()
+
+
+def _key(name: str, tree, static, leaves) -> str | None:
+    """The key of a call, or `None` where a static value has no faithful text."""
+    text = repr((tree, jax.tree.structure(static), jax.tree.leaves(static)))
+    if " at 0x" in text:
+        return None
+    avals = [(x.shape, x.dtype.name, bool(getattr(x, "weak_type", False))) for x in leaves]
+    x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64  # this thread's setting
+    blob = repr((_code_digest(), name, x64, text, avals)).encode()
+    return hashlib.sha256(blob).hexdigest()[:32]
+
+
+def _write(path: pathlib.Path, data: bytes) -> None:
+    """Write atomically (a reader sees the whole file or none); failures are ignored:
+    the program is then traced again next time."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except OSError:
+        pass
+
+
+class Stored:
+    """A jitted function (`eqx.filter_jit`) whose lowered programs are kept in the
+    folder `use_folder` set; without one it is the function itself.
+
+    `structure(*args)` gives the pytree structure of the function's result without
+    tracing it (a stored program returns the flat leaves); a call checks it against
+    the traced result when it stores a program.
+    """
+
+    def __init__(self, fn, structure):
+        self._fn = fn
+        self._structure = structure
+        self._name = f"{fn.__module__}.{getattr(fn, '__qualname__', repr(fn))}"
+        self._programs = {}
+
+    def _entry(self, args):
+        """`(entry, leaves)` of a stored call, or `None`: `entry` holds the program
+        (`jax.jit` of the exported call), the result's structure and, once compiled
+        ahead (`lower`), its executable."""
+        if _FOLDER is None or jax.device_count() != 1:
+            return None
+        dyn, static = eqx.partition(args, eqx.is_array)
+        leaves, tree = jax.tree.flatten(dyn)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return None  # part of a caller's trace
+        key = _key(self._name, tree, static, leaves)
+        if key is None:
+            return None
+        entry = self._programs.get(key)
+        if entry is None:
+            entry = self._programs[key] = self._load(key, args, tree, static, leaves)
+        return entry, leaves
+
+    def _load(self, key, args, tree, static, leaves):
+        out_tree = self._structure(*args)
+        path = _FOLDER / f"{key}.jaxexport"
+        exported = None
+        try:
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+            if len(exported.out_avals) != out_tree.num_leaves:
+                exported = None
+        except Exception:  # noqa: BLE001 - missing, partial or from another version
+            exported = None
+        if exported is None:
+            traced = []
+
+            def flat(*values):
+                out = self._fn(*eqx.combine(jax.tree.unflatten(tree, values), static))
+                traced.append(jax.tree.structure(out))
+                return jax.tree.leaves(out)
+
+            exported = jax.export.export(jax.jit(flat))(*leaves)
+            if traced[0] != out_tree:
+                raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
+            _write(path, bytes(exported.serialize()))
+        return {"program": jax.jit(exported.call), "out_tree": out_tree, "compiled": None}
+
+    def __call__(self, *args):
+        found = self._entry(args)
+        if found is None:
+            return self._fn(*args)
+        entry, leaves = found
+        run = entry["compiled"] or entry["program"]
+        return jax.tree.unflatten(entry["out_tree"], run(*leaves))
+
+    def lower(self, *args):
+        """The call lowered, for `compile_ahead`: the function's, or the stored
+        program's, whose executable the next call then uses."""
+        found = self._entry(args)
+        if found is None:
+            return self._fn.lower(*args)
+        entry, leaves = found
+        return _Lowered(entry, entry["program"].lower(*leaves))
+
+
+class _Lowered:
+    """A stored program lowered: `compile()` keeps the executable for its calls."""
+
+    def __init__(self, entry, lowered):
+        self._entry, self._lowered = entry, lowered
+
+    def compile(self):
+        self._entry["compiled"] = compiled = self._lowered.compile()
+        return compiled
