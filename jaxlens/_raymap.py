@@ -77,7 +77,7 @@ class RayMap(eqx.Module):
         max_windings: float = 10.0,
         captured: bool = False,
         alpha_max: float = math.pi,
-        exact_slopes: bool = True,
+        exact_slopes: bool = False,
         iterations: int = 8,
     ) -> "RayMap":
         """Tabulate Phi(alpha) for a camera at `distance` (units of R_S, scalar).
@@ -92,11 +92,12 @@ class RayMap(eqx.Module):
         - `alpha_max`: the largest local angle tabulated (radians; $\\pi$: every ray; a
           pinhole camera sees no ray beyond $\\pi/2$). Beyond it the table is not
           meaningful.
-        - `exact_slopes`: knot slopes by forward-mode autodiff of the closed form (the
-          default), or (`False`) by fourth-order differences of the knot values. The
-          latter's interpolation error is of the same order in the knot spacing, and
-          its derivative with respect to the distance needs only first derivatives of
-          the closed form: a program that differentiates the table (a fit) compiles
+        - `exact_slopes`: knot slopes by fourth-order differences of the knot values
+          (the default; 3.6 % more knots keep the largest error at or below that of
+          exact slopes), or (`True`) by forward-mode autodiff of the closed form. The
+          differences compile in half the time and run in less than half, and their
+          derivative with respect to the distance needs only first derivatives of the
+          closed form: a program that differentiates the table (a fit) compiles
           several times faster.
         - `iterations`: duplication steps of Carlson's $R_F$ in the closed form at the
           knots (8: round-off; 6: 3e-14 rad, `trace`'s ladder).
