@@ -26,6 +26,13 @@ import jax
 import numpy as np
 
 _FOLDER: pathlib.Path | None = None
+# A stored program is only ever used by the JAX and backend that stored it (both are in
+# its key), so the guarantee of custom calls (LAPACK's, for the fit's QR and
+# eigensolver) across versions is not needed: every target is allowed ("ALL", in newer
+# JAX), and by name those the fit uses (for older JAX, which knows no "ALL").
+_CHECKS = [jax.export.DisabledSafetyCheck.custom_call(t) for t in
+           ["ALL"] + [f"lapack_{p}{op}_ffi" for p in "sd" for op in ("ormqr", "orgqr", "geqrf",
+                                                                    "syevd", "gesdd")]]  # fmt: skip
 
 
 def use_folder(folder) -> None:
@@ -104,14 +111,19 @@ class Stored:
         key = _key(self._name, tree, static, leaves)
         if key is None:
             return None
-        entry = self._programs.get(key)
-        if entry is None:
-            entry = self._programs[key] = self._load(key, args, tree, static, leaves)
-        return entry, leaves
+        if key not in self._programs:
+            self._programs[key] = self._load(key, args, tree, static, leaves)
+        entry = self._programs[key]
+        return None if entry is None else (entry, leaves)
 
     def _load(self, key, args, tree, static, leaves):
+        """The entry of a call: its stored program, or one exported now (`None` where
+        `jax.export` cannot keep it: the function is then called as it is)."""
         out_tree = self._structure(*args)
         path = _FOLDER / f"{key}.jaxexport"
+        refused = path.with_suffix(".refused")  # jax.export could not keep it: not again
+        if refused.exists():
+            return None
         exported = None
         try:
             exported = jax.export.deserialize(bytearray(path.read_bytes()))
@@ -127,7 +139,11 @@ class Stored:
                 traced.append(jax.tree.structure(out))
                 return jax.tree.leaves(out)
 
-            exported = jax.export.export(jax.jit(flat))(*leaves)
+            try:
+                exported = jax.export.export(jax.jit(flat), disabled_checks=_CHECKS)(*leaves)
+            except Exception:  # noqa: BLE001 - e.g. a host callback; or the call's own
+                _write(refused, b"")  # error, which the function's own call then raises
+                return None
             if traced[0] != out_tree:
                 raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
             _write(path, bytes(exported.serialize()))

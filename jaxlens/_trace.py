@@ -13,6 +13,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from . import _exact, _integrators
 from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
+from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
 
 
@@ -248,6 +249,10 @@ def _bucket(n: int) -> int:
 @eqx.filter_jit
 def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
+
+
+# Kept between processes where the CLI keeps its cache (the fit traces arcs' rays).
+_compiled = Stored(_compiled, lambda *_: jax.tree.structure(TraceResult(0, 0, 0)))
 
 
 def _eager(method, alpha, distance, dtype, max_windings):

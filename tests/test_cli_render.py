@@ -237,13 +237,21 @@ def test_interrupt_leaves_no_file(tmp_path, capsys, monkeypatch):
 def test_an_interrupt_swallowed_by_a_gc_callback_is_sent_again():
     # Python ignores exceptions raised in garbage-collector callbacks (JAX has one): a
     # Ctrl-C landing there reached the hook only, and the render went on to exit 0.
+    import signal
     import time
     import types
 
     calls = []
-    with pytest.raises(KeyboardInterrupt):
-        cli._redeliver(types.SimpleNamespace(exc_value=KeyboardInterrupt()), hook=calls.append)
-        time.sleep(5.0)  # the signal is sent again within 0.05 s
+    # Python's own Ctrl-C handler, whatever an earlier test in this process left (the
+    # suite once ran this after something that had replaced it: no KeyboardInterrupt).
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            cli._redeliver(types.SimpleNamespace(exc_value=KeyboardInterrupt()),
+                           hook=calls.append)  # fmt: skip
+            time.sleep(5.0)  # the signal is sent again within 0.05 s
+    finally:
+        signal.signal(signal.SIGINT, before)
     cli._redeliver(types.SimpleNamespace(exc_value=RuntimeError("x")), hook=calls.append)
     assert len(calls) == 1  # other reports go on to the previous hook
 

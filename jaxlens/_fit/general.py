@@ -14,6 +14,7 @@ import optimistix as optx
 from .. import _kernel, _plan
 from .._camera import Camera
 from .._exact import _shadow_angle
+from .._programs import Stored
 from .._scene import Scene
 from .._util import compile_ahead, to_device
 from . import psf as _psf, starts as _starts
@@ -174,7 +175,14 @@ def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     )
 
 
-_loss = eqx.filter_jit(lambda theta, args, prob: jnp.sum(_residuals(theta, args, prob) ** 2))
+@eqx.filter_jit
+def _loss(theta, args, prob: _Problem):
+    return jnp.sum(_residuals(theta, args, prob) ** 2)
+
+
+# Kept between processes where the CLI keeps its cache; the results' structures.
+_solve = Stored(_solve, lambda *_: jax.tree.structure((0, 0, 0, 0, optx.RESULTS.successful, 0)))
+_loss = Stored(_loss, lambda *_: jax.tree.structure(0))
 
 
 def _load(image):

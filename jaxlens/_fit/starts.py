@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import Stored
 from .._util import to_device
 from .model import _pixel_basis
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
@@ -147,6 +148,10 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
         return inf, c[1], jnp.nan_to_num(c[2], nan=1.0), inf, inf
 
     return jax.lax.map(lambda c: jax.lax.cond(jnp.isfinite(c[0]), one, skip, c), cands)
+
+
+# Kept between processes where the CLI keeps its cache: five arrays.
+_candidate_losses = Stored(_candidate_losses, lambda *_: jax.tree.structure((0,) * 5))
 
 
 class _Profile(eqx.Module):
