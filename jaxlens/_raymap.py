@@ -35,10 +35,10 @@ _REL_START = 1e-13  # first knot at alpha_sh * (1 + 1e-13): beyond float64 condi
 _NEWTON = 3  # Newton steps of `solve` on a knot interval's cubic (~1e-6 -> 1e-11 -> 0)
 
 
-def knots_for(accuracy: float, span: float, exact_slopes: bool = True) -> int:
+def knots_for(accuracy: float, span: float, exact_slopes: bool = False) -> int:
     """Number of knots for a target interpolation error `accuracy` (radians) over a
-    $\\tau$-span `span`, with a safety factor of 10 on the error model, for exact or
-    (`exact_slopes=False`) difference slopes."""
+    $\\tau$-span `span`, with a safety factor of 10 on the error model, for difference
+    or (`exact_slopes=True`) exact slopes."""
     c = _HERMITE_C if exact_slopes else _DIFFERENCE_C
     h = (accuracy / (10.0 * c)) ** 0.25
     return int(min(max(math.ceil(span / h) + 1, 64), 200_000))
