@@ -129,7 +129,8 @@ def run(args):
                              sort_keys=True, default=str)  # fmt: skip
             stage = _multi.Stage(out, "frames", key)
             earlier = stage.finished()
-            _render_share(stage, render_group, frames, group, index, count, bar)
+            groups = [range(lo, min(lo + group, frames)) for lo in range(0, frames, group)]
+            stage.fill(groups, lambda g: render_group(groups[g].start), index, count, bar)
             if index != 0:
                 return 0  # process 0 writes the files
             stage.wait(frames, bar)
@@ -156,20 +157,6 @@ def run(args):
     print(f"wrote {out}{where} ({kind} from {start:g} to {stop:g}, "
           f"{time.perf_counter() - t:.1f} s{over})")  # fmt: skip
     return 0
-
-
-def _render_share(stage, render_group, frames, group, index, count, bar):
-    """This process's share of the groups of frames, each frame saved into `stage` by
-    its owner; groups a previous run finished are skipped."""
-    starts = range(0, frames, group)
-    for g in _multi.share(len(starts), index, count):
-        lo = starts[g]
-        todo = range(lo, min(lo + group, frames))
-        if all(stage.has(i) for i in todo):
-            continue
-        for i, img in zip(todo, render_group(lo), strict=True):
-            stage.save(i, img)
-        bar.update(stage.finished() - bar.n)
 
 
 def kept_frames(args) -> str:

@@ -337,7 +337,20 @@ class Stage:
 
     def finished(self) -> int:
         """How many items are there (temporaries, hidden, not counted)."""
-        return sum(1 for _ in self.folder.glob("[0-9]*.npy"))
+        return _items(self.folder)
+
+    def fill(self, groups, make, index: int, count: int, bar) -> None:
+        """Process `index` of `count`'s `share` of `groups` (each a range of item
+        numbers): the arrays `make(g)` returns for group `g`, one an item, each saved by
+        its owner; a group an earlier run finished is skipped. `bar` counts every
+        process's items."""
+        for g in share(len(groups), index, count):
+            items = groups[g]
+            if all(self.has(i) for i in items):
+                continue
+            for i, array in zip(items, make(g), strict=True):
+                self.save(i, array)
+            bar.update(self.finished() - bar.n)
 
     def wait(self, total: int, bar) -> None:
         """Until all `total` items are there, the progress bar counting them."""
@@ -359,6 +372,11 @@ class Stage:
             _io.remove_temporary(folder)
 
 
+def _items(folder: Path) -> int:
+    """The finished items in a stage folder."""
+    return sum(1 for _ in folder.glob("[0-9]*.npy"))
+
+
 def _folders(out: Path, what: str) -> list[Path]:
     from glob import escape
 
@@ -370,7 +388,7 @@ def kept(out, what: str) -> str:
     stage folders of `out` (empty folders are removed)."""
     out = Path(out)
     folders = _folders(out, what)
-    n = sum(1 for f in folders for _ in f.glob("[0-9]*.npy"))
+    n = sum(_items(f) for f in folders)
     if n == 0:
         from . import _io
 

@@ -191,7 +191,7 @@ def _prepared(scene: Scene, chunk_samples: int, dtype):
 def render_share(scene: Scene, stage, index: int, count: int, *,
                  chunk_samples: int = CHUNK_SAMPLES, dtype=None):  # fmt: skip
     """`render(scene)` as one of `count` processes (a scene of one camera): process
-    `index` renders every `count`-th block into `stage` (a `_multi.Stage`; blocks
+    `index` renders its share of the blocks into `stage` (a `_multi.Stage`; blocks
     already there are skipped), and process 0 then waits for every block and puts the
     image together, bitwise `render`'s (the same blocks and programs).
     **Returns:** the image on process 0, `None` on the others."""
@@ -201,10 +201,8 @@ def render_share(scene: Scene, stage, index: int, count: int, *,
     tasks = _tasks(scene, p)
     with tqdm(total=len(tasks), desc="render", unit="block", delay=2.0, leave=False,
               disable=index != 0) as bar:  # fmt: skip
-        for k in range(index, len(tasks), count):
-            if not stage.has(k):
-                stage.save(k, _call(scene, p, maps, *tasks[k]))
-            bar.update(stage.finished() - bar.n)
+        stage.fill([range(k, k + 1) for k in range(len(tasks))],
+                   lambda k: [_call(scene, p, maps, *tasks[k])], index, count, bar)  # fmt: skip
         if index != 0:
             return None
         stage.wait(len(tasks), bar)

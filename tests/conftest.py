@@ -15,7 +15,6 @@ changes; every test runs as before.
 """
 
 import os
-import socket
 
 import jax
 import pytest
@@ -63,6 +62,6 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture
 def free_port() -> int:
     """A TCP port on localhost that nothing listens on (for servers a test starts)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    from jaxlens._multi import free_port
+
+    return free_port()
