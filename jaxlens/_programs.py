@@ -149,7 +149,9 @@ class Stored:
             if traced[0] != out_tree:
                 raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
             _write(path, bytes(exported.serialize()))
-        return {"program": jax.jit(exported.call), "out_tree": out_tree, "compiled": None}
+        options = getattr(self._fn, "options", lambda: None)()  # `filter_jit_cpu`'s
+        program = jax.jit(exported.call, compiler_options=options)
+        return {"program": program, "out_tree": out_tree, "compiled": None}
 
     def __call__(self, *args):
         found = self._entry(args)

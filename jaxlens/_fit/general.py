@@ -2,6 +2,7 @@
 sampling, with a point-spread function, Gaussian or Poisson noise and a mask."""
 
 import dataclasses
+import functools
 import math
 import time
 
@@ -16,7 +17,7 @@ from .._camera import Camera
 from .._exact import _shadow_angle
 from .._programs import Stored
 from .._scene import Scene
-from .._util import compile_ahead, to_device
+from .._util import compile_ahead, filter_jit_cpu, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
@@ -167,7 +168,11 @@ def _residuals_model(theta, args, prob: _Problem):
     return jnp.concatenate([r.ravel(), prior[None]]), m0
 
 
-@eqx.filter_jit
+# XLA's CPU options for the programs with the model's Jacobian (`filter_jit_cpu`).
+_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+@functools.partial(filter_jit_cpu, options=_CPU_OPTIONS)
 def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     """`dense_least_squares` on the residuals, the model as its auxiliary output."""
     return dense_least_squares(
@@ -175,7 +180,7 @@ def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     )
 
 
-@eqx.filter_jit
+@functools.partial(filter_jit_cpu, options=_CPU_OPTIONS)
 def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
@@ -435,8 +440,79 @@ def fit(
             noise_sigma = _noise_clipped(gray, prof, lo, hi)
         start = values_of(scene) | {"psf_sigma": float(psf) if psf_kind == "gaussian"
                                     else 1.0, "ring_flux": 1.0}  # fmt: skip
-        # --- starting values from the image where init does not give them.
         scale = max(prof.peak + prof.floor, 1e-12)
+        if atol is None:
+            atol = 1e-6
+
+        def setup(start, f_px, centre):
+            """The compared bins and the model's arguments for the starting values
+            `start`, a focal length `f_px` (pixels) and the hole's image at `centre`:
+            `(pix, k, model_scene, args, prob, theta0, solve_args)`."""
+            b = block
+            if psf_kind is None:
+                rho_sh = f_px * math.tan(_shadow_angle(max(start["distance"], 1.6), np))
+                pix = _pixel_sets(gray, prof, rho_sh, max_pixels or 40_000, block,
+                                  valid=valid, centre=centre,
+                                  structure=prof.floor + 3.0 * noise_sigma)  # fmt: skip
+            else:
+                if b is None:
+                    b = 1
+                    while (h // b) * (w // b) > (max_pixels or 65_536):
+                        b += 1
+                pix = _grid_sets(gray, valid, int(b))
+            b = pix.block
+            k = int(supersample) if supersample is not None else _samples_for(prof.ring_width, b)
+            yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
+            cam = Camera(start["distance"], start["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
+                         supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
+            sky = jax.tree.map(lambda a: to_device(a, np.float64), scene.sky)
+            # Values given for parameters held fixed are the model's.
+            held = {n: v for n, v in init.items() if n not in free}
+            model_scene = apply(Scene(cam, sky), {n: v for n, v in held.items() if in_scene(n)})
+            pad, otf = 0, None
+            if psf_kind is None:
+                grid = tuple(to_device(np.concatenate(v)) for v in zip(pix.fine, pix.coarse_edges))
+                grid += (to_device(pix.side, jnp.float64),)
+            else:
+                if psf_kind == "gaussian":
+                    pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // b)
+                else:
+                    pad = -(-(max(np.shape(psf)) // 2 + 1) // b)
+                pad = -(-pad // 4) * 4  # margins in steps of 4 bins: PSFs share programs
+                x0, y0 = (np.asarray(v) for v in _pixel_edges(w, h, b, np.float64))
+                xs = x0[0, 0] + b * np.arange(-pad, x0.shape[1] + pad)
+                ys = y0[0, 0] - b * np.arange(-pad, y0.shape[0] + pad)
+                grid = tuple(to_device(v) for v in np.meshgrid(xs, ys))
+                if psf_kind == "image":
+                    otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
+            # Every parameter of the model: the scene's own, then the PSF's width and the
+            # rings' flux factor.
+            given = values_of(model_scene)
+            names = tuple(given) + ("psf_sigma",) * (psf_kind == "gaussian") + ("ring_flux",)
+            for n in free:
+                if n not in names:  # a floor the sky does not have: say so
+                    floor_of(model_scene.sky)
+            given |= {n: start[n] for n in ("psf_sigma", "ring_flux")}
+            sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
+            prob = _Problem(names, b, k, pad, kind, psf_kind, int(knots))
+            # Clipping acts on each original pixel, with its own noise.
+            clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
+            args = (model_scene, grid, otf, to_device(pix.data), to_device(pix.weight), clip,
+                    to_device(gain if gain is not None else 1.0), sel)  # fmt: skip
+            theta0 = np.asarray([parameter(n).transform.inverse(start[n]) for n in free])
+            solve_args = (args, prob, to_device(rtol), to_device(atol), int(max_steps))
+            return pix, k, model_scene, args, prob, theta0, solve_args
+
+        # A regular grid of bins (with a PSF, or an image small enough to compare every
+        # pixel) does not depend on the starting values: the model's programs compile on
+        # a thread while those are searched (the solver's, the largest, after the loss).
+        ahead = None
+        first = setup(start | init, 0.5 * w / math.tan(0.5 * (start | init)["fov"]), (0.0, 0.0))
+        if first[0].coarse == 0:
+            *_, args_, prob_, theta_, solve_ = first
+            theta_ = to_device(theta_)
+            ahead = compile_ahead.calls((_loss, theta_, args_, prob_), (_solve, theta_, *solve_))
+        # --- starting values from the image where init does not give them.
         ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
         ring_init = None
         # Arcs with no shadow in view: nothing in the ring's profile fixes D (a centred
@@ -485,62 +561,11 @@ def fit(
         # structure (the ring, the arcs, the shadow's edge), coarse blocks where it is
         # flat; with one, a regular grid of bins rendered on a margin the PSF reaches.
         centre = (arcs.x_c, arcs.y_c) if found else (0.0, 0.0)
-        if psf_kind is None:
-            rho_sh = f_px * math.tan(_shadow_angle(max(start["distance"], 1.6), np))
-            pix = _pixel_sets(gray, prof, rho_sh, max_pixels or 40_000, block, valid=valid,
-                              centre=centre, structure=prof.floor + 3.0 * noise_sigma)  # fmt: skip
-        else:
-            if block is None:
-                block = 1
-                while (h // block) * (w // block) > (max_pixels or 65_536):
-                    block += 1
-            pix = _grid_sets(gray, valid, int(block))
+        pix, k, model_scene, args, prob, theta0, solve_args = setup(start, f_px, centre)
         block, data, count = pix.block, pix.data, pix.count
-        k = int(supersample) if supersample is not None else _samples_for(prof.ring_width, block)
-        yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
-        cam = Camera(start["distance"], start["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
-                     supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
-        sky = jax.tree.map(lambda a: to_device(a, np.float64), scene.sky)
-        # Values given for parameters held fixed are the model's.
-        held = {n: v for n, v in init.items() if n not in free}
-        model_scene = apply(Scene(cam, sky), {n: v for n, v in held.items() if in_scene(n)})
-        pad, otf = 0, None
-        if psf_kind is None:
-            grid = tuple(to_device(np.concatenate(v)) for v in zip(pix.fine, pix.coarse_edges))
-            grid += (to_device(pix.side, jnp.float64),)
-        else:
-            if psf_kind == "gaussian":
-                pad = -(-math.ceil(4.0 * max(start["psf_sigma"], 0.5) * 1.5) // block)
-            else:
-                pad = -(-(max(np.shape(psf)) // 2 + 1) // block)
-            pad = -(-pad // 4) * 4  # margins in steps of 4 bins: PSFs share programs
-            x0, y0 = (np.asarray(v) for v in _pixel_edges(w, h, block, np.float64))
-            xs = x0[0, 0] + block * np.arange(-pad, x0.shape[1] + pad)
-            ys = y0[0, 0] - block * np.arange(-pad, y0.shape[0] + pad)
-            grid = tuple(to_device(v) for v in np.meshgrid(xs, ys))
-            if psf_kind == "image":
-                otf = _psf.image_otf(grid[0].shape, np.asarray(psf, np.float64))
-        # Every parameter of the model: the scene's own, then the PSF's width and the
-        # rings' flux factor.
-        given = values_of(model_scene)
-        names = tuple(given) + ("psf_sigma",) * (psf_kind == "gaussian") + ("ring_flux",)
-        for n in free:
-            if n not in names:  # a floor the sky does not have: say so
-                floor_of(model_scene.sky)
-        given |= {n: start[n] for n in ("psf_sigma", "ring_flux")}
-        sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
-        prob = _Problem(names, block, k, pad, kind, psf_kind, int(knots))
-        # Clipping acts on each original pixel, with its own noise.
-        clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
-        args = (model_scene, grid, otf, to_device(data), to_device(np.sqrt(count)), clip,
-                to_device(gain if gain is not None else 1.0), sel)  # fmt: skip
-        theta0 = np.asarray([parameter(n).transform.inverse(start[n]) for n in free])
-        if atol is None:
-            atol = 1e-6
-        solve_args = (args, prob, to_device(rtol), to_device(atol), int(max_steps))
-        # The solver's program (the largest) compiles on a thread while the starting
-        # values' scans below compile and run.
-        with compile_ahead(_solve, to_device(theta0), *solve_args):
+        # Otherwise the solver's program compiles on a thread while the starting values'
+        # scans below compile and run.
+        with ahead or compile_ahead(_solve, to_device(theta0), *solve_args):
             # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
             # refined by a scan of the loss along their azimuth.
             for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
