@@ -20,18 +20,49 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
-# No persistent compilation cache: a test that runs the CLI in-process would otherwise
-# point its worker's JAX at ~/.cache/jaxlens/xla, and every later compile in that
-# worker would be written there (and the suite would depend on the cache's state).
+# No jaxlens cache: a test that runs the CLI in-process would otherwise point its
+# worker's JAX at ~/.cache/jaxlens/xla, and every later compile in that worker would be
+# written there (and the suite would depend on the cache's state).
 os.environ["JAXLENS_CACHE_DIR"] = ""
+
+# One XLA compilation cache for the run, made empty at its start and removed at its end:
+# what one process compiled (a worker, a notebook's kernel, a CLI run in a subprocess)
+# the others load instead of compiling it again. The suite still compiles every program
+# once, and does not depend on any earlier run.
+_SUITE_CACHE = "JAXLENS_SUITE_XLA_CACHE"
+
+
+def _use_suite_cache(folder):
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder  # processes started from here
+    jax.config.update("jax_compilation_cache_dir", folder)
+    # Programs of a tenth of a second or more (the many single operations run eagerly
+    # compile in milliseconds, less than the cache's own work).
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
 
 
 def pytest_configure(config):
+    if not hasattr(config, "workerinput") and _SUITE_CACHE not in os.environ:
+        import tempfile
+
+        # The controller (or a run without xdist): the workers inherit the variable.
+        os.environ[_SUITE_CACHE] = config._jaxlens_suite_cache = tempfile.mkdtemp(
+            prefix="jaxlens-suite-xla-"
+        )
+    if os.environ.get(_SUITE_CACHE):
+        _use_suite_cache(os.environ[_SUITE_CACHE])
     # The controller schedules: keep the order of the workers' collection (below).
     if getattr(config.option, "dist", "no") == "loadfile" and hasattr(
         config.option, "loadscopereorder"
     ):
         config.option.loadscopereorder = False
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_jaxlens_suite_cache", None)
+    if folder:
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _recorded_walls(root):
