@@ -152,7 +152,8 @@ class compile_ahead:
     `args` on a background thread; `with compile_ahead(f, *args): ...` runs the block
     meanwhile and waits for the compile at its end (not when the block raises).
     `compile_ahead.calls((f, *args), (g, *args_g), ...)` compiles several, in that
-    order, on the one thread.
+    order, on the one thread; an `f` that is not jitted (no `lower`) is called instead,
+    for the programs it compiles (an eager `trace`).
 
     XLA compiles without holding the GIL, so a program the caller needs next compiles
     while the current one compiles or runs (on a fresh process the two compiles overlap
@@ -180,7 +181,7 @@ class compile_ahead:
             with jax.enable_x64(x64):
                 for f, *args in calls:
                     try:
-                        f.lower(*args).compile()
+                        f.lower(*args).compile() if hasattr(f, "lower") else f(*args)
                     except Exception:  # noqa: BLE001, S112 - the call itself reports it
                         continue
 

@@ -450,7 +450,11 @@ def fit(
             `(pix, k, model_scene, args, prob, theta0, solve_args)`."""
             b = block
             if psf_kind is None:
-                rho_sh = f_px * math.tan(_shadow_angle(max(start["distance"], 1.6), np))
+                # The shadow's edge where the image shows it (its radial profile, else
+                # the arcs' model), else where the starting distance puts it.
+                rho_sh = math.nan if math.isfinite(prof.shadow_radius) else edge_seen
+                if not (math.isfinite(prof.shadow_radius) or math.isfinite(rho_sh)):
+                    rho_sh = f_px * math.tan(_shadow_angle(max(start["distance"], 1.6), np))
                 pix = _pixel_sets(gray, prof, rho_sh, max_pixels or 40_000, block,
                                   valid=valid, centre=centre,
                                   structure=prof.floor + 3.0 * noise_sigma)  # fmt: skip
@@ -503,15 +507,24 @@ def fit(
             solve_args = (args, prob, to_device(rtol), to_device(atol), int(max_steps))
             return pix, k, model_scene, args, prob, theta0, solve_args
 
-        # A regular grid of bins (with a PSF, or an image small enough to compare every
-        # pixel) does not depend on the starting values: the model's programs compile on
-        # a thread while those are searched (the solver's, the largest, after the loss).
+        # The compared bins do not depend on the starting values where they are a
+        # regular grid (with a PSF, or an image small enough to compare every pixel) or
+        # where the image shows the shadow's edge and the hole's image stays where the
+        # arcs put it: the model's programs then compile on a thread while the start is
+        # searched (the solver's, the largest, after the loss).
         ahead = None
-        first = setup(start | init, 0.5 * w / math.tan(0.5 * (start | init)["fov"]), (0.0, 0.0))
-        if first[0].coarse == 0:
+        moves = found and bool({"yaw", "pitch"} & set(free))  # the arcs are found again
+        centre = (arcs.x_c, arcs.y_c) if found and not moves else (0.0, 0.0)
+        edge_seen = arcs.shadow_radius if found else math.nan
+        first = setup(start | init, 0.5 * w / math.tan(0.5 * (start | init)["fov"]), centre)
+        if first[0].coarse == 0 or not moves and (math.isfinite(prof.shadow_radius)
+                                                  or math.isfinite(edge_seen)):  # fmt: skip
             *_, args_, prob_, theta_, solve_ = first
             theta_ = to_device(theta_)
-            ahead = compile_ahead.calls((_loss, theta_, args_, prob_), (_solve, theta_, *solve_))
+            calls = [(_loss, theta_, args_, prob_), (_solve, theta_, *solve_)]
+            if found:  # the arcs' rays (`trace`) for the source's offset
+                calls.insert(1, (source_offset_from_arcs, arcs, 10.0, 100.0))
+            ahead = compile_ahead.calls(*calls)
         # --- starting values from the image where init does not give them.
         ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
         ring_init = None
@@ -557,6 +570,7 @@ def fit(
             # the arcs (the oblique projection moves the ring's centre).
             arcs = find_arcs(masked, focal=f_px)
             found = arcs.score > 10.0
+            edge_seen = arcs.shadow_radius if found else math.nan
         # --- the compared bins. Without a PSF: full resolution where the image has
         # structure (the ring, the arcs, the shadow's edge), coarse blocks where it is
         # flat; with one, a regular grid of bins rendered on a margin the PSF reaches.

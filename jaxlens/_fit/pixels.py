@@ -144,11 +144,11 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
 
     Fine bins: side `block` (default 1, or up to half the ring's radial width when the
     image is still too large, and up to that width when the bands alone hold more than
-    `max_pixels`). The bands at full resolution, about `centre` (the hole's
-    image, pixels from the image centre, y up): the ring radius +- 6 ring widths and the
-    shadow edge (from the starting distance and, when seen, the profile) +- 3 pixels,
-    each widened by a coarse block's diagonal; and every block whose mean stands above
-    `structure` (data units; None: no such test). `valid` (bool, default all): the
+    `max_pixels`). The bands at full resolution, about `centre` (the hole's image,
+    pixels from the image centre, y up): the ring radius +- 6 ring widths and the shadow
+    edge (`prof.shadow_radius` where the profile shows it, and `rho_sh` unless NaN) +- 3
+    pixels, each widened by a coarse block's diagonal; and every block whose mean stands
+    above `structure` (data units; None: no such test). `valid` (bool, default all): the
     pixels compared.
     """
     h, w = img.shape
