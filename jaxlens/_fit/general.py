@@ -512,6 +512,15 @@ def fit(
         # where the image shows the shadow's edge and the hole's image stays where the
         # arcs put it: the model's programs then compile on a thread while the start is
         # searched (the solver's, the largest, after the loss).
+        # Arcs with no shadow in view: nothing in the ring's profile fixes D (a centred
+        # ring's candidates fit the arcs' azimuthal mean: D 3300 for the benchmark's
+        # D 150 arcs), so D is chosen below by the full model along the ring relation.
+        scan_d = (arc_like and not math.isfinite(arcs.shadow_radius)
+                  and {"distance", "fov", "source_lon", "source_lat"} <= set(free)
+                  and not {"distance", "fov", "source_lon", "source_lat"} & set(init))  # fmt: skip
+        # The source's offset is scanned with the loss where it is free and not given.
+        scan_source = {"source_lon", "source_lat"} <= set(free) and not (
+            {"source_lon", "source_lat"} & set(init))  # fmt: skip
         ahead = None
         moves = found and bool({"yaw", "pitch"} & set(free))  # the arcs are found again
         centre = (arcs.x_c, arcs.y_c) if found and not moves else (0.0, 0.0)
@@ -521,19 +530,15 @@ def fit(
                                                   or math.isfinite(edge_seen)):  # fmt: skip
             *_, args_, prob_, theta_, solve_ = first
             theta_ = to_device(theta_)
-            calls = [(_loss, theta_, args_, prob_), (_solve, theta_, *solve_)]
-            if found:  # the arcs' rays (`trace`) for the source's offset
-                calls.insert(1, (source_offset_from_arcs, arcs, 10.0, 100.0))
+            calls = [(_solve, theta_, *solve_)]
+            if found and scan_source:  # the arcs' rays (`trace`) for the source's offset
+                calls.insert(0, (source_offset_from_arcs, arcs, 10.0, 100.0))
+            if scan_d or scan_source:
+                calls.insert(0, (_loss, theta_, args_, prob_))
             ahead = compile_ahead.calls(*calls)
         # --- starting values from the image where init does not give them.
         ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
         ring_init = None
-        # Arcs with no shadow in view: nothing in the ring's profile fixes D (a centred
-        # ring's candidates fit the arcs' azimuthal mean: D 3300 for the benchmark's
-        # D 150 arcs), so D is chosen below by the full model along the ring relation.
-        scan_d = (arc_like and not math.isfinite(arcs.shadow_radius)
-                  and {"distance", "fov", "source_lon", "source_lat"} <= set(free)
-                  and not {"distance", "fov", "source_lon", "source_lat"} & set(init))  # fmt: skip
         if scan_d:
             start |= init | _arcs_camera(arcs, w, init.get("sigma", start["sigma"]))
         elif ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
@@ -592,8 +597,7 @@ def fit(
                           for i, n in enumerate(free)
                           if n in ("distance", "fov", "sigma")}  # fmt: skip
                 f_px = 0.5 * w / math.tan(0.5 * start["fov"])
-            if {"source_lon", "source_lat"} <= set(free) and not ({"source_lon", "source_lat"}
-                                                                  & set(init)):  # fmt: skip
+            if scan_source:
                 if found:
                     psi = arcs.psi
                     beta = float(source_offset_from_arcs(arcs, start["distance"], f_px))
