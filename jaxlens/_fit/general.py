@@ -450,10 +450,14 @@ def fit(
             `(pix, k, model_scene, args, prob, theta0, solve_args)`."""
             b = block
             if psf_kind is None:
-                # The shadow's edge where the image shows it (its radial profile, else
-                # the arcs' model), else where the starting distance puts it.
-                rho_sh = math.nan if math.isfinite(prof.shadow_radius) else edge_seen
-                if not (math.isfinite(prof.shadow_radius) or math.isfinite(rho_sh)):
+                # The shadow's edge where the image shows it (its radial profile's, which
+                # `_pixel_sets` takes itself, else the arcs' model's), else where the
+                # starting distance puts it.
+                if math.isfinite(prof.shadow_radius):
+                    rho_sh = math.nan
+                elif math.isfinite(edge_seen):
+                    rho_sh = edge_seen
+                else:
                     rho_sh = f_px * math.tan(_shadow_angle(max(start["distance"], 1.6), np))
                 pix = _pixel_sets(gray, prof, rho_sh, max_pixels or 40_000, block,
                                   valid=valid, centre=centre,
@@ -507,11 +511,6 @@ def fit(
             solve_args = (args, prob, to_device(rtol), to_device(atol), int(max_steps))
             return pix, k, model_scene, args, prob, theta0, solve_args
 
-        # The compared bins do not depend on the starting values where they are a
-        # regular grid (with a PSF, or an image small enough to compare every pixel) or
-        # where the image shows the shadow's edge and the hole's image stays where the
-        # arcs put it: the model's programs then compile on a thread while the start is
-        # searched (the solver's, the largest, after the loss).
         # Arcs with no shadow in view: nothing in the ring's profile fixes D (a centred
         # ring's candidates fit the arcs' azimuthal mean: D 3300 for the benchmark's
         # D 150 arcs), so D is chosen below by the full model along the ring relation.
@@ -521,6 +520,11 @@ def fit(
         # The source's offset is scanned with the loss where it is free and not given.
         scan_source = {"source_lon", "source_lat"} <= set(free) and not (
             {"source_lon", "source_lat"} & set(init))  # fmt: skip
+        # The compared bins do not depend on the starting values where they are a
+        # regular grid (with a PSF, or an image small enough to compare every pixel) or
+        # where the image shows the shadow's edge and the hole's image stays where the
+        # arcs put it: the model's programs then compile on a thread while the start is
+        # searched (the solver's, the largest, after the loss).
         ahead = None
         moves = found and bool({"yaw", "pitch"} & set(free))  # the arcs are found again
         centre = (arcs.x_c, arcs.y_c) if found and not moves else (0.0, 0.0)
