@@ -190,7 +190,9 @@ def _geometry(scene, plan, ray_map, x, y):
 
 def _symmetric(scene, plan, ray_map, row0, rows: int, pair: bool):
     """Camera-frame directions, coverage and $g$ of the block through the mirror
-    symmetries of a centred camera: the per-ray work on one half of the columns."""
+    symmetries of a centred camera: the per-ray work on one half of the columns. With
+    `pair`, the mirror rows follow the block's rows in one batch (so what consumes them,
+    the sky, is traced and compiled once)."""
     cam = scene.camera
     xs = cam.sample_x()
     ys = cam.sample_y(row0, rows)
@@ -208,16 +210,13 @@ def _symmetric(scene, plan, ray_map, row0, rows: int, pair: bool):
     per_ray = jax.lax.optimization_barrier(per_ray)
     per_ray = [jnp.concatenate([a[:, odd:][:, ::-1], a], axis=1) for a in per_ray]
 
-    def directions(s, c, ys):
-        return jnp.stack([s * xs[None, :], s * ys[:, None], -c], axis=-1)
-
+    if pair:  # the mirror rows: the same rays, y negated
+        per_ray = [jnp.concatenate([a, a[::-1]], axis=0) for a in per_ray]
+        ys = jnp.concatenate([ys, -ys[::-1]])
     s, c, cover = per_ray[:3]
     g = per_ray[3] if g is not None else None
-    out = [(directions(s, c, ys), cover, g)]
-    if pair:
-        flip = None if g is None else g[::-1]
-        out.append((directions(s[::-1], c[::-1], -ys[::-1]), cover[::-1], flip))
-    return out
+    n = jnp.stack([s * xs[None, :], s * ys[:, None], -c], axis=-1)
+    return n, cover, g
 
 
 def _sample_grid(cam, row0, rows: int):
@@ -241,7 +240,7 @@ def directions(scene, plan, ray_map, row0, rows: int):
     """World sky directions `(rows k, W k, 3)` and shadow coverage `(rows k, W k)` of
     the block's samples, by the path `shade` takes (for checks and benchmarks)."""
     if plan.symmetric:
-        n, cover, _ = _symmetric(scene, plan, ray_map, row0, rows, False)[0]
+        n, cover, _ = _symmetric(scene, plan, ray_map, row0, rows, False)
     else:
         n, cover, _, _ = _general(scene, plan, ray_map, row0, rows)
     if not plan.at_origin:
@@ -536,11 +535,9 @@ def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False, check: bool
     cam = scene.camera
     k, w = cam.supersample, cam.width
     if plan.symmetric:
-        out = []
-        for n, cover, g in _symmetric(scene, plan, ray_map, row0, rows, pair):
-            rad = _radiance(scene, plan, n, g) * cover[..., None]
-            out.append(_average(rad, rows, w, k))
-        return jnp.concatenate(out, axis=0) if pair else out[0]
+        n, cover, g = _symmetric(scene, plan, ray_map, row0, rows, pair)
+        rad = _radiance(scene, plan, n, g) * cover[..., None]
+        return _average(rad, 2 * rows if pair else rows, w, k)
     n, cover, g, rays = _general(scene, plan, ray_map, row0, rows)
     rad = _radiance(scene, plan, n, g) * cover[..., None]
     if plan.disk:
