@@ -44,6 +44,12 @@ def knots_for(accuracy: float, span: float, exact_slopes: bool = False) -> int:
     return int(min(max(math.ceil(span / h) + 1, 64), 200_000))
 
 
+def default_knots(accuracy: float, exact_slopes: bool = False) -> int:
+    """Knots of `RayMap.build` without `knots`: for `accuracy` over the widest
+    $\\tau$-span of any distance (at most ~ln(pi / (alpha_sh 1e-13)), alpha_sh >= b_c/D)."""
+    return knots_for(accuracy, 30.0 + 2.0 * math.log(10.0) + 25.0, exact_slopes)
+
+
 class RayMap(eqx.Module):
     """Escape angle as a function of alpha for one static camera distance.
 
@@ -107,9 +113,7 @@ class RayMap(eqx.Module):
         if d.ndim != 0:
             raise ValueError(f"RayMap.build needs a scalar distance, got shape {d.shape}")
         if knots is None:
-            # The span is at most ~ln(pi / (alpha_sh 1e-13)); alpha_sh >= b_c/D.
-            span_bound = 30.0 + 2.0 * math.log(10.0) + 25.0
-            knots = knots_for(accuracy, span_bound, exact_slopes)
+            knots = default_knots(accuracy, exact_slopes)
         if not 0.0 < alpha_max <= math.pi:
             raise ValueError(f"alpha_max={alpha_max!r} must be in (0, pi] radians")
         settings = dict(knots=int(knots), max_windings=float(max_windings), captured=captured,
