@@ -278,6 +278,9 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
         spec.attribute("oiio:UnassociatedAlpha", 1)  # written as given, not divided again
     spec.attribute("oiio:ColorSpace", space)
     spec.attribute("Software", "jaxlens")
+    # zlib level 3, not 6: a 960 x 540 render written in 0.05 s instead of 0.13 s, the
+    # file 10 % larger.
+    spec.attribute("png:compressionLevel", 3)
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None:
