@@ -25,6 +25,7 @@ fit rows (a smoke run).
 """
 
 import argparse
+import compileall
 import json
 import math
 import os
@@ -194,6 +195,11 @@ def main():
     import _common
 
     n = 1 if args.quick else args.repeats
+    # jaxlens's own modules byte-compiled, as pip does for an installed wheel and Python
+    # does at a first import (unless PYTHONDONTWRITEBYTECODE is set, as on some CI
+    # machines): otherwise each child compiles ~40 modules from source (~0.1 s) while
+    # `import jax` reads its byte code.
+    compileall.compile_dir(ROOT / "jaxlens", quiet=1)
     load = os.getloadavg()[0]
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="jaxlens-latency-"))
     off = dict(os.environ, JAXLENS_CACHE_DIR="", JAX_COMPILATION_CACHE_DIR="")
@@ -246,7 +252,8 @@ def write_report(rows, inproc, load, common):
         "",
         common.machine_markdown().rstrip(),
         f"- Load average {load:.1f} at the start. Produced by `benchmarks/latency.py` "
-        f"(median of {len(rows[0]['walls'])} fresh processes a row).",
+        f"(median of {len(rows[0]['walls'])} fresh processes a row; jaxlens's modules "
+        "byte-compiled first, as an installed wheel's are).",
         "",
         "Wall: the whole process, Python start-up included. Ratio: to `import jax` in the "
         "same run. The parts (seconds, medians) are measured inside the process: importing "
