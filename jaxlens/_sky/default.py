@@ -160,10 +160,10 @@ class DefaultSky(AbstractRGBSky):
     def __call__(self, n):
         dt = n.dtype
         centre, east, pole = (jnp.asarray(v, dt) for v in self.galactic_frame())
-        # Products with `@` (XLA's dot): as a sum over the last axis, XLA's CPU code ran
-        # ~40 times slower; written out component by component, the render's block
-        # held 48 MB more.
-        nc, ne, npole = (n @ v for v in (centre, east, pole))
+        # Matrix-vector products (XLA's dot; full precision, not a GPU's TF32): as a sum
+        # over the last axis, XLA's CPU code ran ~40 times slower; written out component
+        # by component, the render's block held 48 MB more.
+        nc, ne, npole = (jnp.dot(n, v, precision="highest") for v in (centre, east, pole))
         b = arctan2(npole, jnp.sqrt(nc * nc + ne * ne))  # galactic latitude
         l = arctan2(ne, nc)  # noqa: E741  galactic longitude
         # Star clouds and dust: 3-D fractal noise on the sphere (no seams).
