@@ -1,8 +1,10 @@
 """The escape angle of one camera distance for the fit (a `RayMap` out to $\\pi/2$ with
 values-only knots), and the exact Einstein ring relation $\\alpha_E(D)$ solved on it."""
 
+import functools
 import math
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -39,12 +41,38 @@ def escape_table(distance: ArrayLike, *, knots: int = 4096) -> RayMap:
     R_S, scalar) on `knots` knots out to $\\alpha = \\pi/2$ (a pinhole camera sees no
     wider ray), values only (`RayMap.build(..., exact_slopes=False)`), the closed form at
     the 1e-13 rad setting of `trace` (6 duplication steps): 1.1e-11 rad from the exact
-    escape angle at 4096 knots, and its derivative with respect to $D$ needs only
-    first derivatives of the closed form, which keeps the fit's compiled Jacobian small.
+    escape angle at 4096 knots.
+
+    Its derivative with respect to $D$ (every field of the map: knots, values, slopes,
+    shadow angle) is a five-point central difference of the map, the five distances
+    built as one batch: 3e-11 of the derivative from forward-mode autodiff of the closed
+    form (float64), and a program that differentiates the map (the fit's Jacobian) holds
+    no tangent of the closed form: it compiles in half the time, whatever the number of
+    tangents.
     """
-    return RayMap.build(
-        distance, knots=knots, alpha_max=0.5 * math.pi, exact_slopes=False, iterations=6
-    )
+    d = jnp.asarray(distance, jnp.result_type(float, distance))
+    return _escape_table(d, int(knots))
+
+
+# Step of the difference, relative to D - 1 (the scale on which the map changes near
+# the horizon): the five-point rule's error ~ step^4, its round-off ~ eps / step.
+_STEP = {jnp.dtype(jnp.float64): 1e-3, jnp.dtype(jnp.float32): 3e-2}
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
+def _escape_table(d, knots: int) -> RayMap:
+    return RayMap.build(d, knots=knots, alpha_max=0.5 * math.pi, exact_slopes=False, iterations=6)
+
+
+@_escape_table.defjvp
+def _escape_table_jvp(knots, primals, tangents):
+    (d,), (dd,) = primals, tangents
+    h = jax.lax.stop_gradient(_STEP.get(d.dtype, 3e-2) * jnp.abs(d - 1.0))
+    at = d + h * jnp.asarray([0.0, -2.0, -1.0, 1.0, 2.0], d.dtype)
+    maps = jax.vmap(lambda x: _escape_table(x, knots))(at)
+    primal = jax.tree.map(lambda v: v[0], maps)
+    slope = jax.tree.map(lambda v: (v[1] - 8.0 * v[2] + 8.0 * v[3] - v[4]) / (12.0 * h), maps)
+    return primal, jax.tree.map(lambda v: v * dd, slope)
 
 
 def solve_with_slope(table: RayMap, target: ArrayLike):
