@@ -1,26 +1,29 @@
-"""Traced programs kept between processes (`jax.export`).
+"""Compiled programs kept between processes.
 
 XLA's persistent cache keeps compiled programs, but a fresh process still traces and
 lowers each program before it can look one up (0.8 s of a 960 x 540 render whose
 compiled programs were all in the cache, 6.8 s of a fit). Where a folder is set
 (`use_folder`: the command line sets its cache folder), a `Stored` function also keeps
-its lowered program (StableHLO, serialised by `jax.export`) in
+each executable it compiles (`jax.experimental.serialize_executable`) in
 `<folder>/jaxlens-programs`, under a digest of everything that decides it, and a later
-process calls that program without tracing the function; XLA's cache then supplies the
-compiled code. (Reading a kept program back costs some of that again: the render
-starts 0.3 s sooner, the fit 4.5 s.)
+process loads and calls it: no tracing, no lowering, no lookup in XLA's cache.
 
 What decides a program, and so goes into its key: jaxlens's own source files, the
-versions of JAX and jaxlib, the backend, `jax_enable_x64`, the function, and its
-arguments' structure, static values, shapes and dtypes. A call whose static values
-have no faithful text (an object shown by its address) is not stored, nor is one on
-more than one device; a stored file that cannot be read is made again.
+versions of JAX and jaxlib, the backend and its devices (the CPU's instruction set:
+XLA compiles for the host's), `jax_enable_x64`, the function, and its arguments'
+structure, static values, shapes and dtypes. A call whose static values have no
+faithful text (an object shown by its address) is not stored, nor is one on more than
+one device or one with host callbacks; a stored file that cannot be read is made
+again. A file is loaded as code (as XLA's own cache loads its entries): the folder
+must be the user's own.
 """
 
 import functools
 import hashlib
 import os
 import pathlib
+import pickle
+import platform
 import tempfile
 
 import equinox as eqx
@@ -28,28 +31,28 @@ import jax
 import numpy as np
 
 _FOLDER: pathlib.Path | None = None
-# A stored program is only ever used by the JAX and backend that stored it (both are in
-# its key), so the guarantee of custom calls (LAPACK's, for the fit's QR and
-# eigensolver) across versions is not needed: every target is allowed ("ALL", in newer
-# JAX), and by name those the fit uses (for older JAX, which knows no "ALL").
-_CHECKS = [jax.export.DisabledSafetyCheck.custom_call(t) for t in
-           ["ALL"] + [f"lapack_{p}{op}_ffi" for p in "sd" for op in ("ormqr", "orgqr", "geqrf",
-                                                                    "syevd", "gesdd")]]  # fmt: skip
+_SUFFIX = ".executable"
 
 
 def use_folder(folder) -> None:
     """Keep programs in `folder / "jaxlens-programs"` (`None`: keep none, the default)."""
     global _FOLDER
-    try:
-        import flatbuffers  # noqa: F401  (jax.export's serialisation needs it)
-    except ImportError:
-        folder = None
     _FOLDER = None if folder is None else pathlib.Path(folder) / "jaxlens-programs"
+
+
+def _cpu_flags() -> str:
+    """The host CPU's model and instruction-set flags where the system tells them."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [line for line in f if line.startswith(("flags", "model name", "Features"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor() or platform.machine()
 
 
 @functools.cache
 def _code_digest() -> str:
-    """Digest of jaxlens's source files, the JAX versions and the backend."""
+    """Digest of jaxlens's source files, the JAX versions, the backend and the host."""
     import jaxlib
 
     h = hashlib.sha256()
@@ -57,8 +60,21 @@ def _code_digest() -> str:
     for path in sorted(root.rglob("*.py")):
         h.update(path.relative_to(root).as_posix().encode())
         h.update(path.read_bytes())
+    device = jax.devices()[0]
     h.update(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
+    h.update(f"{device.device_kind} {device.client.platform_version}".encode())
+    h.update(_cpu_flags().encode())
     return h.hexdigest()
+
+
+@functools.cache
+def _lapack_ready() -> None:
+    """Set up JAX's LAPACK kernels (for the fit's QR and eigensolver), which JAX does
+    when it lowers a program that calls them: a loaded program that calls them without
+    it would crash the process. Lowering a small QR does it (0.1 s: scipy's LAPACK)."""
+    import jax.numpy as jnp
+
+    jax.jit(jnp.linalg.qr).lower(np.zeros((2, 2), np.float32))
 
 
 def _key(name: str, tree, static, leaves) -> str | None:
@@ -86,12 +102,12 @@ def _write(path: pathlib.Path, data: bytes) -> None:
 
 
 class Stored:
-    """A jitted function (`eqx.filter_jit`) whose lowered programs are kept in the
+    """A jitted function (`eqx.filter_jit`) whose compiled programs are kept in the
     folder `use_folder` set; without one it is the function itself.
 
     `structure(*args)` gives the pytree structure of the function's result without
-    tracing it (a stored program returns the flat leaves); a call checks it against
-    the traced result when it stores a program.
+    tracing it (a kept program returns the flat leaves); a call checks it against the
+    traced result when it compiles a program.
     """
 
     def __init__(self, fn, structure):
@@ -101,9 +117,9 @@ class Stored:
         self._programs = {}
 
     def _entry(self, args):
-        """`(entry, leaves)` of a stored call, or `None`: `entry` holds the program
-        (`jax.jit` of the exported call), the result's structure and, once compiled
-        ahead (`lower`), its executable."""
+        """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
+        (once loaded or compiled), the program to compile otherwise (`jax.jit` of the
+        function on the flat leaves), the result's structure and the file."""
         if _FOLDER is None or jax.device_count() != 1:
             return None
         dyn, static = eqx.partition(args, eqx.is_array)
@@ -119,21 +135,18 @@ class Stored:
         return None if entry is None else (entry, leaves)
 
     def _load(self, key, args, tree, static, leaves):
-        """The entry of a call: its stored program, or one exported now (`None` where
-        `jax.export` cannot keep it: the function is then called as it is)."""
+        """The entry of a call: its kept executable, or the program to compile (`None`
+        where it cannot be kept: the function is then called as it is)."""
         out_tree = self._structure(*args)
-        path = _FOLDER / f"{key}.jaxexport"
-        refused = path.with_suffix(".refused")  # jax.export could not keep it: not again
-        if refused.exists():
+        path = _FOLDER / f"{key}{_SUFFIX}"
+        if path.with_suffix(".refused").exists():
             return None
-        exported = None
+        entry = {"out_tree": out_tree, "path": path, "compiled": None, "program": None}
         try:
-            exported = jax.export.deserialize(bytearray(path.read_bytes()))
-            if len(exported.out_avals) != out_tree.num_leaves:
-                exported = None
+            entry["compiled"] = _read(path, len(leaves), out_tree.num_leaves)
         except Exception:  # noqa: BLE001 - missing, partial or from another version
-            exported = None
-        if exported is None:
+            pass
+        if entry["compiled"] is None:
             traced = []
 
             def flat(*values):
@@ -141,42 +154,88 @@ class Stored:
                 traced.append(jax.tree.structure(out))
                 return jax.tree.leaves(out)
 
-            try:
-                exported = jax.export.export(jax.jit(flat), disabled_checks=_CHECKS)(*leaves)
-            except Exception:  # noqa: BLE001 - e.g. a host callback; or the call's own
-                _write(refused, b"")  # error, which the function's own call then raises
-                return None
-            if traced[0] != out_tree:
-                raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
-            _write(path, bytes(exported.serialize()))
-        options = getattr(self._fn, "options", lambda: None)()  # `filter_jit_cpu`'s
-        program = jax.jit(exported.call, compiler_options=options)
-        return {"program": program, "out_tree": out_tree, "compiled": None}
+            def check():
+                if traced and traced[0] != out_tree:
+                    raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
+
+            options = getattr(self._fn, "options", lambda: None)()  # `filter_jit_cpu`'s
+            entry["program"] = jax.jit(flat, compiler_options=options)
+            entry["check"] = check
+        return entry
+
+    def _compiled(self, entry, lowered=None):
+        """The entry's executable: compiled from `lowered` (or lowered now) and kept
+        in its file, where it was not loaded."""
+        if entry["compiled"] is None:
+            text = lowered.as_text()
+            compiled = lowered.compile()
+            entry["check"]()
+            _keep(entry["path"], compiled, text)
+            entry["compiled"] = compiled
+        return entry["compiled"]
 
     def __call__(self, *args):
         found = self._entry(args)
         if found is None:
             return self._fn(*args)
         entry, leaves = found
-        run = entry["compiled"] or entry["program"]
-        return jax.tree.unflatten(entry["out_tree"], run(*leaves))
+        if entry["compiled"] is None:
+            try:
+                lowered = entry["program"].lower(*leaves)
+            except Exception:  # noqa: BLE001 - the function's own call raises it
+                return self._fn(*args)
+            self._compiled(entry, lowered)
+        return jax.tree.unflatten(entry["out_tree"], entry["compiled"](*leaves))
 
     def lower(self, *args):
-        """The call lowered, for `compile_ahead`: the function's, or the stored
+        """The call lowered, for `compile_ahead`: the function's, or the kept
         program's, whose executable the next call then uses."""
         found = self._entry(args)
         if found is None:
             return self._fn.lower(*args)
         entry, leaves = found
-        return _Lowered(entry, entry["program"].lower(*leaves))
+        if entry["compiled"] is not None:
+            return _Lowered(self, entry, None)
+        return _Lowered(self, entry, entry["program"].lower(*leaves))
 
 
 class _Lowered:
-    """A stored program lowered: `compile()` keeps the executable for its calls."""
+    """A kept program lowered: `compile()` compiles and keeps the executable for its
+    calls (or gives the one loaded)."""
 
-    def __init__(self, entry, lowered):
-        self._entry, self._lowered = entry, lowered
+    def __init__(self, stored, entry, lowered):
+        self._stored, self._entry, self._lowered = stored, entry, lowered
 
     def compile(self):
-        self._entry["compiled"] = compiled = self._lowered.compile()
-        return compiled
+        return self._stored._compiled(self._entry, self._lowered)
+
+
+def _keep(path: pathlib.Path, compiled, text: str) -> None:
+    """Write `compiled` to `path` with what loading it needs (whether it calls JAX's
+    LAPACK kernels); a program with host callbacks is not kept (`.refused`)."""
+    if "callback" in text:
+        _write(path.with_suffix(".refused"), b"")
+        return
+    from jax.experimental import serialize_executable
+
+    try:
+        payload = serialize_executable.serialize(compiled)[0]
+    except Exception:  # noqa: BLE001 - a backend that cannot serialise: not kept
+        _write(path.with_suffix(".refused"), b"")
+        return
+    _write(path, pickle.dumps({"lapack": "lapack" in text, "payload": payload}))
+
+
+def _read(path: pathlib.Path, n_in: int, n_out: int):
+    """The executable kept in `path` (for `n_in` flat arguments and `n_out` results)."""
+    from jax.experimental import serialize_executable
+
+    kept = pickle.loads(path.read_bytes())  # noqa: S301 - the user's own cache folder
+    if kept["lapack"]:
+        _lapack_ready()
+    in_tree = jax.tree.structure((tuple(range(n_in)), {}))
+    out_tree = jax.tree.structure(list(range(n_out)))
+    compiled = serialize_executable.deserialize_and_load(kept["payload"], in_tree, out_tree)
+    if len(compiled.out_info) != n_out:
+        raise ValueError(f"{path}: {len(compiled.out_info)} results, expected {n_out}")
+    return compiled

@@ -481,14 +481,14 @@ def test_cli(tmp_path, capsys, monkeypatch):
     from jaxlens import _programs, cli
 
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")  # no persistent cache from a test
-    # ... but the fit's programs run as the CLI keeps them (exported, jax.export).
+    # ... but the fit's programs run as the CLI keeps them (their executables).
     kept = tmp_path / "programs"
     monkeypatch.setattr(_programs, "_FOLDER", kept)
     path = tmp_path / "ring.png"
     write_png(path, noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=16), 16)
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--mass", "10", "--json"]) == 0
     # The solve, the starting values' search and scan, the arcs' rays: all kept.
-    assert len(list(kept.glob("*.jaxexport"))) == 4 and not list(kept.glob("*.refused"))
+    assert len(list(kept.glob("*.executable"))) == 4 and not list(kept.glob("*.refused"))
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["converged"] is True and out["transfer"] == "linear"
     assert out["distance"] == pytest.approx(20.0, rel=0.01)

@@ -233,9 +233,9 @@ def test_the_block_program_compiled_ahead_is_the_one_the_render_runs():
 
 
 def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_path):
-    # Where the CLI keeps its cache, the render's programs are kept traced (jax.export):
-    # a later process calls them without tracing the renderer. A fresh process is
-    # played by forgetting the programs held in memory.
+    # Where the CLI keeps its cache, the render's programs are kept compiled (their
+    # executables): a later process calls them without tracing the renderer. A fresh
+    # process is played by forgetting the programs held in memory.
     from jaxlens import _programs, _render
 
     scene = jl.Scene(Camera(20.0, math.radians(50.0), 18, 12, supersample=2), SKY)
@@ -251,7 +251,7 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
     stored = (_render._block, _render._build_map)
     try:
         first = render(scene)
-        kept = sorted((tmp_path / "jaxlens-programs").glob("*.jaxexport"))
+        kept = sorted((tmp_path / "jaxlens-programs").glob("*.executable"))
         assert len(kept) == 2, kept
         for f in stored:
             f._programs.clear()
