@@ -208,7 +208,13 @@ def main(argv=None) -> int:
         spinner = _spinner.Spinner(command).__enter__()  # on a terminal: a status line
         if getattr(args, "uses_jax", True):
             _spinner.status("loading JAX")
-            import jax  # noqa: F401  (under the handler above)
+            import jax  # (under the handler above)
+
+            if not getattr(args, "distributed", False):  # a job's process joins it first
+                # JAX's backends start under it too: a signal raised in their set-up
+                # left JAX's TPU-plugin timer running, and its warning followed the
+                # command's last line.
+                jax.devices()
         _configure_cache()
         # From here an interrupt unwinds (temporary files are removed on the way).
         sigint = previous.get(signal.SIGINT)
