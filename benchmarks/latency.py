@@ -14,11 +14,12 @@ a shared machine whose absolute speed drifts. Rows:
 
 For the jaxlens rows a breakdown comes from the child process itself: importing jax,
 importing jaxlens, then JAX's own compile events (`jax.monitoring`: tracing to a jaxpr,
-lowering to MLIR, XLA's compile, retrieval from the persistent cache) and the rest
-(host set-up and running). Three warm figures are measured inside one process: an eager
-`trace` on 100,000 rays called again at the same distance, the same call jitted, and
-the notebook explorer's time from a slider change to its new image (distance, FOV, star
-position; each new distance needs a new ray map).
+lowering to MLIR, XLA's compile, retrieval from XLA's persistent cache) and the rest
+(host set-up, loading the executables the CLI keeps in its cache folder, and running).
+Three warm figures are measured inside one process: an eager `trace` on 100,000 rays
+called again at the same distance, the same call jitted, and the notebook explorer's
+time from a slider change to its new image (distance, FOV, star position; each new
+distance needs a new ray map).
 
 Writes `results/latency.md` and `results/latency.json`. `--quick`: one repeat and no
 fit rows (a smoke run).
@@ -258,7 +259,8 @@ def write_report(rows, inproc, load, common):
         "Wall: the whole process, Python start-up included. Ratio: to `import jax` in the "
         "same run. The parts (seconds, medians) are measured inside the process: importing "
         "jax and jaxlens, JAX's tracing, lowering and XLA compilation (its own events), "
-        "retrieval from the persistent cache, and the rest (host work and running). render "
+        "retrieval from XLA's persistent cache, and the rest (host work, loading the "
+        "executables the CLI keeps in its cache folder, and running). render "
         "and fit compile their next program on a second thread while the first compiles or "
         "runs, so the parts can add up to more than the process took: the rest (what is "
         "left of the wall time) is then negative.",
