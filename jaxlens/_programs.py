@@ -64,6 +64,11 @@ def _code_digest() -> str:
     h.update(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
     h.update(f"{device.device_kind} {device.client.platform_version}".encode())
     h.update(_cpu_flags().encode())
+    # XLA's flags and JAX's settings from the environment change the compiled code.
+    skip = "JAX_COMPILATION_CACHE_DIR"
+    env = sorted((k, v) for k, v in os.environ.items()
+                 if k.startswith(("XLA_", "JAX_")) and k != skip)  # fmt: skip
+    h.update(repr(env).encode())
     return h.hexdigest()
 
 

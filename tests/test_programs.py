@@ -1,0 +1,59 @@
+"""The executables the CLI keeps between processes (`jaxlens._programs.Stored`): what
+goes into their key, and a kept program that calls JAX's LAPACK kernels loaded by a
+fresh process (which has not set them up: calling it unprepared ends the process)."""
+
+import subprocess
+import sys
+
+from jaxlens import _programs
+
+# Keeps (first run) or loads (second run) a program with a QR decomposition in the
+# folder given, and prints a value of its result and whether it was traced.
+_CHILD = """
+import sys
+import equinox as eqx, jax, jax.numpy as jnp, numpy as np
+from jaxlens import _programs
+
+traced = []
+
+@eqx.filter_jit
+def qr_sum(a):
+    traced.append(1)
+    return jnp.sum(jnp.abs(jnp.linalg.qr(a)[1]))
+
+_programs.use_folder(sys.argv[1])
+f = _programs.Stored(qr_sum, lambda *_: jax.tree.structure(0))
+a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
+print(float(f(a)), bool(traced))
+"""
+
+
+def test_a_kept_program_with_lapack_calls_runs_in_a_fresh_process(tmp_path):
+    def run():
+        done = subprocess.run([sys.executable, "-c", _CHILD, str(tmp_path)],
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+        value, traced = done.stdout.split()
+        return float(value), traced == "True"
+
+    first, traced_first = run()
+    assert traced_first and len(list((tmp_path / "jaxlens-programs").glob("*.executable"))) == 1
+    again, traced_again = run()
+    assert not traced_again and again == first
+
+
+def test_the_key_holds_xla_flags_and_jax_settings_from_the_environment(monkeypatch):
+    def digest():
+        _programs._code_digest.cache_clear()
+        return _programs._code_digest()
+
+    try:
+        monkeypatch.delenv("XLA_FLAGS", raising=False)
+        plain = digest()
+        monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=true")
+        flags = digest()
+        # The cache's own folder is not part of what decides a program.
+        monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(monkeypatch))
+        assert plain != flags == digest()
+    finally:
+        _programs._code_digest.cache_clear()
