@@ -25,6 +25,7 @@ import pathlib
 import pickle
 import platform
 import tempfile
+import threading
 
 import equinox as eqx
 import jax
@@ -120,6 +121,7 @@ class Stored:
         self._structure = structure
         self._name = f"{fn.__module__}.{getattr(fn, '__qualname__', repr(fn))}"
         self._programs = {}
+        self._lock = threading.Lock()  # one entry a key, whichever thread comes first
 
     def _entry(self, args):
         """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
@@ -134,9 +136,10 @@ class Stored:
         key = _key(self._name, tree, static, leaves)
         if key is None:
             return None
-        if key not in self._programs:
-            self._programs[key] = self._load(key, args, tree, static, leaves)
-        entry = self._programs[key]
+        with self._lock:
+            if key not in self._programs:
+                self._programs[key] = self._load(key, args, tree, static, leaves)
+            entry = self._programs[key]
         return None if entry is None else (entry, leaves)
 
     def _load(self, key, args, tree, static, leaves):
@@ -146,7 +149,8 @@ class Stored:
         path = _FOLDER / f"{key}{_SUFFIX}"
         if path.with_suffix(".refused").exists():
             return None
-        entry = {"out_tree": out_tree, "path": path, "compiled": None, "program": None}
+        entry = {"out_tree": out_tree, "path": path, "compiled": None, "program": None,
+                 "lock": threading.Lock()}  # fmt: skip
         try:
             entry["compiled"] = _read(path, len(leaves), out_tree.num_leaves)
         except Exception:  # noqa: BLE001 - missing, partial or from another version
@@ -168,15 +172,18 @@ class Stored:
             entry["check"] = check
         return entry
 
-    def _compiled(self, entry, lowered=None):
-        """The entry's executable: compiled from `lowered` (or lowered now) and kept
-        in its file, where it was not loaded."""
-        if entry["compiled"] is None:
-            text = lowered.as_text()
-            compiled = lowered.compile()
-            entry["check"]()
-            _keep(entry["path"], compiled, text)
-            entry["compiled"] = compiled
+    def _compiled(self, entry, lower):
+        """The entry's executable: compiled from `lower()` (the program lowered) and
+        kept in its file, where it was not loaded. One compile an entry: a caller that
+        comes while another thread compiles it waits for that one."""
+        with entry["lock"]:
+            if entry["compiled"] is None:
+                lowered = lower()
+                text = lowered.as_text()
+                compiled = lowered.compile()
+                entry["check"]()
+                _keep(entry["path"], compiled, text)
+                entry["compiled"] = compiled
         return entry["compiled"]
 
     def __call__(self, *args):
@@ -185,11 +192,17 @@ class Stored:
             return self._fn(*args)
         entry, leaves = found
         if entry["compiled"] is None:
+
+            def lower():
+                try:
+                    return entry["program"].lower(*leaves)
+                except Exception as e:  # the function's own call raises it
+                    raise _NotLowered from e
+
             try:
-                lowered = entry["program"].lower(*leaves)
-            except Exception:  # noqa: BLE001 - the function's own call raises it
+                self._compiled(entry, lower)
+            except _NotLowered:
                 return self._fn(*args)
-            self._compiled(entry, lowered)
         return jax.tree.unflatten(entry["out_tree"], entry["compiled"](*leaves))
 
     def lower(self, *args):
@@ -204,6 +217,10 @@ class Stored:
         return _Lowered(self, entry, entry["program"].lower(*leaves))
 
 
+class _NotLowered(Exception):
+    """A kept program's function failed to trace (its own call then says why)."""
+
+
 class _Lowered:
     """A kept program lowered: `compile()` compiles and keeps the executable for its
     calls (or gives the one loaded)."""
@@ -212,7 +229,7 @@ class _Lowered:
         self._stored, self._entry, self._lowered = stored, entry, lowered
 
     def compile(self):
-        return self._stored._compiled(self._entry, self._lowered)
+        return self._stored._compiled(self._entry, lambda: self._lowered)
 
 
 def _keep(path: pathlib.Path, compiled, text: str) -> None:
