@@ -60,9 +60,9 @@ def enable_x64():
 def _configure_cache():
     """Keep compiled programs between runs (XLA's persistent cache), and the executables
     of renders and fits (`_programs`, in its folder `jaxlens-programs`, loaded without
-    tracing): the first run compiles for several seconds, later ones start at once. The folder is
-    `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it is
-    set; else `~/.cache/jaxlens/xla`. An empty value turns it off."""
+    tracing): the first run compiles for several seconds, later ones start at once. The
+    folder is `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it
+    is set; else `~/.cache/jaxlens/xla`. An empty value turns it off."""
     folder = os.environ.get("JAXLENS_CACHE_DIR")
     if folder is None:
         folder = os.environ.get("JAX_COMPILATION_CACHE_DIR")

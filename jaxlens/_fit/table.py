@@ -55,8 +55,9 @@ def escape_table(distance: ArrayLike, *, knots: int = 4096) -> RayMap:
 
 
 # Step of the difference, relative to D - 1 (the scale on which the map changes near
-# the horizon): the five-point rule's error ~ step^4, its round-off ~ eps / step.
-_STEP = {jnp.dtype(jnp.float64): 1e-3, jnp.dtype(jnp.float32): 3e-2}
+# the horizon), in float64 and in float32: the five-point rule's error ~ step^4, its
+# round-off ~ eps / step.
+_STEP_F64, _STEP_F32 = 1e-3, 3e-2
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
@@ -67,7 +68,8 @@ def _escape_table(d, knots: int) -> RayMap:
 @_escape_table.defjvp
 def _escape_table_jvp(knots, primals, tangents):
     (d,), (dd,) = primals, tangents
-    h = jax.lax.stop_gradient(_STEP.get(d.dtype, 3e-2) * jnp.abs(d - 1.0))
+    step = _STEP_F64 if d.dtype == jnp.float64 else _STEP_F32
+    h = jax.lax.stop_gradient(step * jnp.abs(d - 1.0))
     at = d + h * jnp.asarray([0.0, -2.0, -1.0, 1.0, 2.0], d.dtype)
     maps = jax.vmap(lambda x: _escape_table(x, knots))(at)
     primal = jax.tree.map(lambda v: v[0], maps)
