@@ -13,6 +13,7 @@ float32 through `astype`), `trace(method="table")` calls it, point images solve 
 lens equation on it (`solve`), and the fit differentiates it with respect to $D$.
 """
 
+import functools
 import math
 
 import equinox as eqx
@@ -22,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
-from ._util import fusion_barrier, is_concrete
+from ._util import OLDER_CPU_FUSION, filter_jit_cpu, fusion_barrier, is_concrete
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -124,7 +125,7 @@ class RayMap(eqx.Module):
         # A concrete distance: one compiled program a setting, reused for every distance
         # (op by op, each later build took 0.45 s; compiled, 0.03 s). An eager jacfwd
         # or grad through the build traces it, so it stays op by op there.
-        return _tabulated_compiled(cls, d, **settings)
+        return _tabulated_compiled(cls, d, settings)
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated escape angle (radians) at `alpha`; meaningful where
@@ -245,7 +246,9 @@ def _tabulated(cls, d, *, knots, max_windings, captured, alpha_max, exact_slopes
     return cls(d, alpha_sh, *outer, inner, peri, max_windings)
 
 
-_tabulated_compiled = eqx.filter_jit(_tabulated)
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+def _tabulated_compiled(cls, d, settings: dict):
+    return _tabulated(cls, d, **settings)
 
 
 def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):

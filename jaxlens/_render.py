@@ -13,6 +13,7 @@ and `grad` with respect to any array field of the scene.
 
 import contextlib
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -28,7 +29,7 @@ from ._raymap import RayMap, default_knots
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import compile_ahead, is_concrete
+from ._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -52,7 +53,7 @@ def _map_dtype(dtype):
     return jnp.float64 if jax.config.read("jax_enable_x64") else dtype
 
 
-@eqx.filter_jit
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
 def _build_map(distance, accuracy, dtype):
     # One compiled table builder for every distance of an accuracy, as `trace`'s table
     # builds it (`TABLE_SETTINGS`). Returned in the pixel dtype with a batch axis: no

@@ -1,6 +1,7 @@
 """`trace`: camera rays -> escape angle and capture, the single source of truth for Phi."""
 
 import abc
+import functools
 import math
 from typing import ClassVar, final
 
@@ -15,6 +16,7 @@ from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
+from ._util import OLDER_CPU_FUSION, filter_jit_cpu
 
 
 class TraceResult(eqx.Module):
@@ -246,7 +248,7 @@ def _bucket(n: int) -> int:
     return m
 
 
-@eqx.filter_jit
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
 def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
 

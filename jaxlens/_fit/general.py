@@ -17,7 +17,7 @@ from .._camera import Camera
 from .._exact import _shadow_angle
 from .._programs import Stored
 from .._scene import Scene
-from .._util import compile_ahead, filter_jit_cpu, to_device
+from .._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
@@ -168,11 +168,7 @@ def _residuals_model(theta, args, prob: _Problem):
     return jnp.concatenate([r.ravel(), prior[None]]), m0
 
 
-# XLA's CPU options for the programs with the model's Jacobian (`filter_jit_cpu`).
-_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-
-
-@functools.partial(filter_jit_cpu, options=_CPU_OPTIONS)
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
 def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     """`dense_least_squares` on the residuals, the model as its auxiliary output."""
     return dense_least_squares(
@@ -180,7 +176,7 @@ def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     )
 
 
-@functools.partial(filter_jit_cpu, options=_CPU_OPTIONS)
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
 def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 

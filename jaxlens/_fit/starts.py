@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._programs import Stored
-from .._util import to_device
+from .._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
 from .model import _pixel_basis
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
 from .solve import _Setup
@@ -52,7 +52,7 @@ _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each cand
 _SHORTLIST = 8
 
 
-@eqx.filter_jit
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
 def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     r"""Profile loss of each candidate distance.
 
