@@ -73,13 +73,11 @@ class _Settled(optx.AbstractLeastSquaresSolver):
         return _SettledState(state, jnp.array(False))
 
     def step(self, fn, y, args, options, state, tags):
-        y, inner, _ = self.inner.step(fn, y, args, options, state.inner, tags)
-        # The Gauss-Newton state's `aux` is that of `y`, the last accepted point (the
-        # step's own third result is that of the accepted point before it from
-        # optimistix 0.1): tested and returned, the solve stops where `y` has settled,
-        # not one Jacobian later, and its residuals and Jacobian are those of `y`.
-        aux = inner.aux
-        settled = newton_decrement(aux[0], aux[1]) < SETTLED_CHI2
+        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        # `aux` is that of the last accepted point but one (the one `y` stepped from),
+        # and `y` is at least as good: settled there, `y` has settled too.
+        r, jac = aux[0], aux[1]
+        settled = newton_decrement(r, jac) < SETTLED_CHI2
         return y, _SettledState(inner, settled), aux
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -100,9 +98,10 @@ def dense_least_squares(both, theta0, rtol, atol, max_steps):
     reduction) and each application would otherwise be a further copy of the model's
     tangent program; as matrix products the solver's program compiles ~3x faster.
 
-    **Returns:** `(theta, r, J, aux, result, steps)`; `r`, `J`, `aux` are those of
-    `theta` (the last accepted point), so no further copy of the model's Jacobian is
-    compiled.
+    **Returns:** `(theta, r, J, aux, result, steps)`; `r`, `J`, `aux` are those of the
+    last accepted point but one: at termination that step is below the tolerances, so
+    they are the optimum's to that accuracy, and no further copy of the model's
+    Jacobian is compiled.
     """
 
     @jax.custom_jvp
