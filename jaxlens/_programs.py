@@ -14,8 +14,9 @@ XLA compiles for the host's), `jax_enable_x64`, the function, and its arguments'
 structure, static values, shapes and dtypes. A call whose static values have no
 faithful text (an object shown by its address) is not stored, nor is one on more than
 one device or one with host callbacks; a stored file that cannot be read is made
-again. A file is loaded as code (as XLA's own cache loads its entries): the folder
-must be the user's own.
+again. These programs compile past XLA's persistent cache (an executable it serves
+would be kept without its code), so each is stored once. A file is loaded as code (as
+XLA's own cache loads its entries): the folder must be the user's own.
 """
 
 import functools
@@ -107,6 +108,13 @@ def _write(path: pathlib.Path, data: bytes) -> None:
         pass
 
 
+def _xla_cache_off():
+    """A context in which this thread's compiles bypass XLA's persistent cache."""
+    from jax._src import config
+
+    return config.enable_compilation_cache(False)
+
+
 class Stored:
     """A jitted function (`eqx.filter_jit`) whose compiled programs are kept in the
     folder `use_folder` set; without one it is the function itself.
@@ -180,7 +188,11 @@ class Stored:
             if entry["compiled"] is None:
                 lowered = lower()
                 text = lowered.as_text()
-                compiled = lowered.compile()
+                # Not from XLA's persistent cache (the CLI sets one): an executable
+                # it serves serialises without its code, and the kept file then fails
+                # in the next process ("Function ... not found"). The file keeps it.
+                with _xla_cache_off():
+                    compiled = lowered.compile()
                 entry["check"]()
                 _keep(entry["path"], compiled, text)
                 entry["compiled"] = compiled

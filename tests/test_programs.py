@@ -21,6 +21,9 @@ def qr_sum(a):
     traced.append(1)
     return jnp.sum(jnp.abs(jnp.linalg.qr(a)[1]))
 
+if len(sys.argv) > 2:  # XLA's persistent cache in the same folder, as the CLI sets it
+    jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 _programs.use_folder(sys.argv[1])
 f = _programs.Stored(qr_sum, lambda *_: jax.tree.structure(0))
 a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
@@ -28,13 +31,17 @@ print(float(f(a)), bool(traced))
 """
 
 
+def _run(folder, *more):
+    done = subprocess.run([sys.executable, "-c", _CHILD, str(folder), *more],
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    value, traced = done.stdout.split()
+    return float(value), traced == "True"
+
+
 def test_a_kept_program_with_lapack_calls_runs_in_a_fresh_process(tmp_path):
     def run():
-        done = subprocess.run([sys.executable, "-c", _CHILD, str(tmp_path)],
-                              capture_output=True, text=True, timeout=300)  # fmt: skip
-        assert done.returncode == 0, done.stderr[-2000:]
-        value, traced = done.stdout.split()
-        return float(value), traced == "True"
+        return _run(tmp_path)
 
     first, traced_first = run()
     assert traced_first and len(list((tmp_path / "jaxlens-programs").glob("*.executable"))) == 1
@@ -57,3 +64,17 @@ def test_the_key_holds_xla_flags_and_jax_settings_from_the_environment(monkeypat
         assert plain != flags == digest()
     finally:
         _programs._code_digest.cache_clear()
+
+
+def test_a_program_xla_cached_is_kept_whole(tmp_path):
+    # Kept programs gone, XLA's cache entry there (a new jaxlens version: new keys, the
+    # same program): the program compiled again is kept with its code. One that XLA's
+    # cache had served was kept without it, and the next process failed to run it
+    # ("Function ... not found").
+    first, _ = _run(tmp_path, "xla")
+    for path in (tmp_path / "jaxlens-programs").glob("*.executable"):
+        path.unlink()
+    again, traced = _run(tmp_path, "xla")
+    assert traced and again == first
+    loaded, traced = _run(tmp_path, "xla")
+    assert not traced and loaded == first
