@@ -137,8 +137,15 @@ def _compile_ahead(scene, p: Plan, dtype):
     if key in _AHEAD:
         return contextlib.nullcontext()
     _AHEAD.add(key)
-    return compile_ahead(_block, first, kernel, _map_placeholder(fb, accuracy, dtype),
-                         np.asarray(0, dt), p.rows, p.pair)  # fmt: skip
+    # Traced and lowered here, before the ray maps' program: on a thread the two traces
+    # would take turns holding the GIL, and the block's compile, the longer, would start
+    # later.
+    try:
+        lowered = _block.lower(first, kernel, _map_placeholder(fb, accuracy, dtype),
+                               np.asarray(0, dt), p.rows, p.pair)  # fmt: skip
+    except Exception:  # noqa: BLE001 - the block's own call reports it
+        return contextlib.nullcontext()
+    return compile_ahead(lowered.compile)
 
 
 def _map_placeholder(frames: int, accuracy: float, dtype) -> RayMap:
