@@ -5,7 +5,8 @@ beside the yardstick `python -c "import jax"` timed the same way, so the ratios 
 a shared machine whose absolute speed drifts. Rows:
 
 - `import jax`, `import jaxlens`, `jaxlens --help`;
-- the first `trace` on 1,000 and on 100,000 rays (eager, as the README calls it);
+- the first `trace` on 1,000 and on 100,000 rays (eager, as the README calls it), and
+  on 100,000 in a script that calls `jaxlens.keep_programs()` after one that did;
 - `jaxlens render -o out.png` of the default scene, with the persistent compilation
   cache off ("cold") and with it filled by an earlier run ("warm cache");
 - `jaxlens fit RING.png --json --star-sigma-deg 1.5` on the fit benchmark's first ring
@@ -71,6 +72,9 @@ def _child(task: str, arg: str) -> None:
     t_lens = time.perf_counter()
     if task.startswith("trace"):
         import numpy as np
+
+        if task == "trace-kept":  # a script that keeps its programs, as the CLI does
+            jaxlens.keep_programs()
 
         n = int(arg)
         alpha = np.linspace(0.05, 3.0, n)
@@ -226,6 +230,9 @@ def main():
     warm = dict(os.environ, JAXLENS_CACHE_DIR=str(cache), JAX_COMPILATION_CACHE_DIR="")
     _timed(_child_argv("render", str(png)), warm)  # fills the cache
     run("jaxlens render (default scene), warm cache", _child_argv("render", str(png)), warm)
+    kept = _child_argv("trace-kept", "100000")
+    _timed(kept, warm)  # keeps trace's program
+    run("first trace, 100,000 rays, programs kept (`keep_programs`)", kept, warm)
     if not args.quick:
         ring = _ring_png(tmp)
         run("jaxlens fit (benchmark ring), cold", _child_argv("fit", str(ring)))

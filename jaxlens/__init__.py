@@ -25,6 +25,7 @@ _MODULES = {
         "strong_field_deflection",
         "weak_field_deflection",
     ),
+    "_programs": ("keep_programs",),
     "_trace": (
         "RK4",
         "AbstractIntegrator",

@@ -12,7 +12,6 @@ import os
 import signal
 import sys
 import threading
-from pathlib import Path
 
 from . import _spinner
 
@@ -58,32 +57,14 @@ def enable_x64():
 
 
 def _configure_cache():
-    """Keep compiled programs between runs (XLA's persistent cache), and the executables
-    of renders and fits (`_programs`, in its folder `jaxlens-programs`, loaded without
-    tracing): the first run compiles for several seconds, later ones start at once. The
-    folder is `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it
-    is set; else `~/.cache/jaxlens/xla`. An empty value turns it off."""
-    folder = os.environ.get("JAXLENS_CACHE_DIR")
-    if folder is None:
-        folder = os.environ.get("JAX_COMPILATION_CACHE_DIR")
-    if folder is None:
-        base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-        folder = str(Path(base) / "jaxlens" / "xla")
-    if not folder:
-        return
-    try:
-        Path(folder).mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return
-    import jax
+    """Keep compiled programs between runs (`jaxlens.keep_programs`: XLA's persistent
+    cache, and the executables of renders and fits, loaded without tracing): the first
+    run compiles for several seconds, later ones start at once. The folder is
+    `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it is set;
+    else `~/.cache/jaxlens/xla`. An empty value turns it off."""
+    from ._programs import keep_programs
 
-    jax.config.update("jax_compilation_cache_dir", folder)
-    # Every program: the ones under a second add up (1.8 s of compiling was left in a
-    # render with the cache warm when only those over 0.5 s were kept).
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    from . import _programs
-
-    _programs.use_folder(folder)
+    keep_programs()
 
 
 class _Version(argparse.Action):
@@ -215,7 +196,7 @@ def main(argv=None) -> int:
                 # left JAX's TPU-plugin timer running, and its warning followed the
                 # command's last line.
                 jax.devices()
-        _configure_cache()
+            _configure_cache()
         # From here an interrupt unwinds (temporary files are removed on the way).
         sigint = previous.get(signal.SIGINT)
         _set_handlers({

@@ -78,3 +78,45 @@ def test_a_program_xla_cached_is_kept_whole(tmp_path):
     assert traced and again == first
     loaded, traced = _run(tmp_path, "xla")
     assert not traced and loaded == first
+
+
+# `jaxlens.keep_programs` in a script: the first process keeps `trace`'s program, the
+# next loads it (its entry has no program to compile) and gives the same rays.
+_KEEP = """
+import sys
+import numpy as np
+import jaxlens as jl
+from jaxlens import _trace
+
+folder = jl.keep_programs(sys.argv[1])
+r = jl.trace(np.linspace(0.05, 3.0, 2000), 10.0)
+entries = list(_trace._compiled._programs.values())
+print(float(np.sum(np.asarray(r.phi))), all(e["program"] is None for e in entries),
+      len(entries), folder)
+"""
+
+
+def test_keep_programs_lets_the_next_process_load_trace(tmp_path):
+    def run():
+        done = subprocess.run([sys.executable, "-c", _KEEP, str(tmp_path)],
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+        value, loaded, count, folder = done.stdout.split()
+        assert count == "1" and folder == str(tmp_path)
+        return float(value), loaded == "True"
+
+    first, loaded_first = run()
+    assert not loaded_first
+    assert len(list((tmp_path / "jaxlens-programs").glob("*.executable"))) == 1
+    again, loaded_again = run()
+    assert loaded_again and again == first
+
+
+def test_keep_programs_with_an_empty_folder_keeps_nothing(monkeypatch):
+    import jax
+
+    before = (_programs._FOLDER, jax.config.jax_compilation_cache_dir)
+    assert _programs.keep_programs("") is None
+    monkeypatch.setenv("JAXLENS_CACHE_DIR", "")
+    assert _programs.keep_programs() is None
+    assert (_programs._FOLDER, jax.config.jax_compilation_cache_dir) == before
