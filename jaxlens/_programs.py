@@ -60,9 +60,9 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
     the first render, trace or fit.
 
     **Arguments:** `folder`: where to keep them; `None`: `$JAXLENS_CACHE_DIR`, else
-    JAX's `$JAX_COMPILATION_CACHE_DIR`, else `~/.cache/jaxlens/xla` (under
-    `$XDG_CACHE_HOME` where set). An empty value (`""`, or an empty variable) keeps
-    nothing.
+    JAX's `$JAX_COMPILATION_CACHE_DIR`, else JAX's `jax_compilation_cache_dir` where
+    the script set it, else `~/.cache/jaxlens/xla` (under `$XDG_CACHE_HOME` where
+    set). An empty value (`""`, or an empty variable) keeps nothing.
 
     **Returns:** the folder, or `None` when nothing is kept (an empty value, or a
     folder that cannot be created).
@@ -71,6 +71,8 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
         folder = os.environ.get("JAXLENS_CACHE_DIR")
     if folder is None:
         folder = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if folder is None:
+        folder = jax.config.jax_compilation_cache_dir  # set in the script
     if folder is None:
         base = os.environ.get("XDG_CACHE_HOME") or str(pathlib.Path.home() / ".cache")
         folder = pathlib.Path(base) / "jaxlens" / "xla"

@@ -2,6 +2,7 @@
 goes into their key, and a kept program that calls JAX's LAPACK kernels loaded by a
 fresh process (which has not set them up: calling it unprepared ends the process)."""
 
+import os
 import subprocess
 import sys
 
@@ -120,3 +121,17 @@ def test_keep_programs_with_an_empty_folder_keeps_nothing(monkeypatch):
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")
     assert _programs.keep_programs() is None
     assert (_programs._FOLDER, jax.config.jax_compilation_cache_dir) == before
+
+
+def test_keep_programs_takes_the_folder_jax_was_given(tmp_path):
+    code = (
+        "import jax, jaxlens as jl\n"
+        f"jax.config.update('jax_compilation_cache_dir', {str(tmp_path)!r})\n"
+        "print(jl.keep_programs())\n"
+    )
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("JAXLENS_CACHE_DIR", "JAX_COMPILATION_CACHE_DIR")}  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == [str(tmp_path)]
