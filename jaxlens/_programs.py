@@ -43,6 +43,11 @@ def use_folder(folder) -> None:
     _FOLDER = None if folder is None else pathlib.Path(folder) / "jaxlens-programs"
 
 
+def keeping() -> bool:
+    """Whether programs are kept (a folder is set)."""
+    return _FOLDER is not None
+
+
 def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | None:
     """Keep this process's compiled programs in a folder, for later processes, as the
     command line does: the next notebook kernel or script that renders a scene,
@@ -265,6 +270,25 @@ class Stored:
             except _NotLowered:
                 return self._fn(*args)
         return jax.tree.unflatten(entry["out_tree"], entry["compiled"](*leaves))
+
+    def preload(self, *args) -> threading.Thread | None:
+        """Load the kept executable of this call on a background thread (returned), for
+        a later call with arguments of the same kind (nothing where no folder is set or
+        none was kept: this never traces or compiles)."""
+        if not keeping():
+            return None
+        x64 = jax.config.read("jax_enable_x64")
+
+        def load():
+            with jax.enable_x64(x64):
+                try:
+                    self._entry(args)
+                except Exception:  # noqa: BLE001, S110 - the call itself reports it
+                    pass
+
+        thread = threading.Thread(target=load, name="jaxlens-preload", daemon=True)
+        thread.start()
+        return thread
 
     def lower(self, *args):
         """The call lowered, for `compile_ahead`: the function's, or the kept

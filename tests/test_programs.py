@@ -22,12 +22,15 @@ def qr_sum(a):
     traced.append(1)
     return jnp.sum(jnp.abs(jnp.linalg.qr(a)[1]))
 
-if len(sys.argv) > 2:  # XLA's persistent cache in the same folder, as the CLI sets it
+if "xla" in sys.argv:  # XLA's persistent cache in the same folder, as the CLI sets it
     jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 _programs.use_folder(sys.argv[1])
 f = _programs.Stored(qr_sum, lambda *_: jax.tree.structure(0))
 a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
+if "preload" in sys.argv:  # loaded on a thread before the call: the call finds it
+    f.preload(a).join()
+    assert all(e["compiled"] is not None for e in f._programs.values()), "not loaded"
 print(float(f(a)), bool(traced))
 """
 
@@ -135,3 +138,9 @@ def test_keep_programs_takes_the_folder_jax_was_given(tmp_path):
                           env=env, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == [str(tmp_path)]
+
+
+def test_a_preloaded_program_is_loaded_before_its_call(tmp_path):
+    first, _ = _run(tmp_path)
+    again, traced = _run(tmp_path, "preload")
+    assert not traced and again == first

@@ -411,6 +411,9 @@ def fit(
             raise ValueError(f"image is blank (every valid pixel is {float(img[valid][0]):.6g}): "
                              "no ring to fit")  # fmt: skip
         prof = _starts._profile(gray)
+        scale = max(prof.peak + prof.floor, 1e-12)
+        # Loaded while the arcs are sought (a kept program: 0.3-0.4 s of a warm fit).
+        _starts.preload_search(gray, prof, scale)
         masked = np.where(valid, img, np.nan)
         # The hole's image and the source: the arcs' centre, azimuth and radii.
         arcs = find_arcs(masked)
@@ -436,7 +439,6 @@ def fit(
             noise_sigma = _noise_clipped(gray, prof, lo, hi)
         start = values_of(scene) | {"psf_sigma": float(psf) if psf_kind == "gaussian"
                                     else 1.0, "ring_flux": 1.0}  # fmt: skip
-        scale = max(prof.peak + prof.floor, 1e-12)
         if atol is None:
             atol = 1e-6
 

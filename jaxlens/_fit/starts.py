@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from .._programs import Stored
 from .._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
 from .model import _pixel_basis
@@ -300,14 +301,10 @@ def distance_from_radii(ring_px: float, shadow_px: float, width: int):
     return {"distance": math.exp(ld), "fov": 2.0 * math.atan(0.5 * width * math.tan(a) / ring_px)}
 
 
-def ring_start(img, prof: _Profile, star_sigma, init, scale):
-    """Starting values of an Einstein-ring fit: candidates along the exact ring relation
-    (and from `init`), each refined on a binned image with D held, the best by loss.
-
-    **Returns:** `(distance, fov, sigma, brightness, floor, lo, hi, noise)`: R_S,
-    radians, radians, data units; the clipping bounds of the stored values and the
-    noise of one original pixel (data units).
-    """
+def _search_inputs(img, prof: _Profile, star_sigma, scale):
+    """The start search's model on the binned image: `(args, setup, noise)` for
+    `_candidate_losses` (`noise`: `(lo, hi, noise)`, the clipping bounds and the noise
+    of one original pixel)."""
     from .model import _pixel_edges, _samples_for
     from .pixels import _bin
 
@@ -324,15 +321,44 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
     clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
     args0 = (x0c, y0c, to_device(cimg), to_device(scale), clip0,
              to_device(float(star_sigma is None)))  # fmt: skip
-    cands = _ring_candidates(prof, w, star_sigma)
+    return args0, setup0, (lo, hi, noise)
+
+
+def _rows(cands):
+    """The candidates of the ring relation and three rows for those from `init`."""
     extra = np.full((3, 3), np.nan)
     extra[:, 1] = 1.0
+    return np.concatenate([extra, cands], axis=0)
+
+
+def preload_search(img, prof: _Profile, scale) -> None:
+    """Load the start search's program where the command line keeps programs, on a
+    thread, while the caller goes on (`ring_start` then finds it loaded)."""
+    if not _programs.keeping():
+        return
+    args0, setup0, _ = _search_inputs(img, prof, None, scale)
+    cands = _rows(_ring_candidates(prof, img.shape[1], None))
+    halves = to_device([prof.inner_half, prof.outer_half])
+    _candidate_losses.preload(to_device(cands), halves, args0, setup0, to_device(1))
+
+
+def ring_start(img, prof: _Profile, star_sigma, init, scale):
+    """Starting values of an Einstein-ring fit: candidates along the exact ring relation
+    (and from `init`), each refined on a binned image with D held, the best by loss.
+
+    **Returns:** `(distance, fov, sigma, brightness, floor, lo, hi, noise)`: R_S,
+    radians, radians, data units; the clipping bounds of the stored values and the
+    noise of one original pixel (data units).
+    """
+    w = img.shape[1]
+    args0, setup0, (lo, hi, noise) = _search_inputs(img, prof, star_sigma, scale)
+    cands = _ring_candidates(prof, w, star_sigma)
+    cands = _rows(cands)
     if init is not None:
         # Starting values in `init`: their own candidates only (the grid rows are skipped).
         given = _from_init(init, prof, w, star_sigma)
-        extra[: len(given)] = given
-        cands[:, 0] = np.nan
-    cands = np.concatenate([extra, cands], axis=0)
+        cands[3:, 0] = np.nan
+        cands[: len(given)] = given
     if not np.any(np.isfinite(cands[:, 0])):
         raise ValueError(
             f"no camera distance puts an Einstein ring at {prof.ring_radius:.3g} pixels "
