@@ -16,7 +16,7 @@ from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
-from ._util import OLDER_CPU_FUSION, filter_jit_cpu
+from ._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
 
 
 class TraceResult(eqx.Module):
@@ -279,8 +279,9 @@ def _eager(method, alpha, distance, dtype, max_windings):
         return jax.tree.map(lambda x: x.reshape(shape), out)
     if jax.default_backend() == "cpu":
         # Cut on the host (shared memory on CPU): each of the device's slices is a
-        # program of its own, compiled on a process's first call (~0.05 s).
-        return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)[:n].reshape(shape)), out)
+        # program of its own, compiled on a process's first call (~0.05 s), and so is
+        # `jnp.asarray` of each result (~0.02 s): placed with `to_device`.
+        return jax.tree.map(lambda x: to_device(np.asarray(x)[:n].reshape(shape)), out)
     return jax.tree.map(lambda x: x[:n].reshape(shape), out)
 
 
