@@ -352,8 +352,7 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
     """
     w = img.shape[1]
     args0, setup0, (lo, hi, noise) = _search_inputs(img, prof, star_sigma, scale)
-    cands = _ring_candidates(prof, w, star_sigma)
-    cands = _rows(cands)
+    cands = _rows(_ring_candidates(prof, w, star_sigma))
     if init is not None:
         # Starting values in `init`: their own candidates only (the grid rows are skipped).
         given = _from_init(init, prof, w, star_sigma)
