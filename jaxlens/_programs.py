@@ -189,7 +189,7 @@ class Stored:
         """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
         (once loaded or compiled), the program to compile otherwise (`jax.jit` of the
         function on the flat leaves), the result's structure and the file."""
-        if _FOLDER is None or jax.device_count() != 1:
+        if not keeping() or jax.device_count() != 1:
             return None
         dyn, static = eqx.partition(args, eqx.is_array)
         leaves, tree = jax.tree.flatten(dyn)

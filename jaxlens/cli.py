@@ -56,17 +56,6 @@ def enable_x64():
     jax.config.update("jax_enable_x64", True)
 
 
-def _configure_cache():
-    """Keep compiled programs between runs (`jaxlens.keep_programs`: XLA's persistent
-    cache, and the executables of renders and fits, loaded without tracing): the first
-    run compiles for several seconds, later ones start at once. The folder is
-    `$JAXLENS_CACHE_DIR`; else JAX's own `$JAX_COMPILATION_CACHE_DIR` where it is set;
-    else `~/.cache/jaxlens/xla`. An empty value turns it off."""
-    from ._programs import keep_programs
-
-    keep_programs()
-
-
 class _Version(argparse.Action):
     """`--version`, looked up only when asked (the package metadata is slow to load)."""
 
@@ -196,7 +185,12 @@ def main(argv=None) -> int:
                 # left JAX's TPU-plugin timer running, and its warning followed the
                 # command's last line.
                 jax.devices()
-            _configure_cache()
+            # Compiled programs kept between runs (`keep_programs`: the folder is
+            # $JAXLENS_CACHE_DIR, else $JAX_COMPILATION_CACHE_DIR, else
+            # ~/.cache/jaxlens/xla; empty: none kept): later runs start at once.
+            from ._programs import keep_programs
+
+            keep_programs()
         # From here an interrupt unwinds (temporary files are removed on the way).
         sigint = previous.get(signal.SIGINT)
         _set_handlers({

@@ -302,7 +302,7 @@ def distance_from_radii(ring_px: float, shadow_px: float, width: int):
 
 
 def _search_inputs(img, prof: _Profile, star_sigma, scale):
-    """The start search's model on the binned image: `(args, setup, noise)` for
+    """The start search's model on the binned image: `(halves, args, setup, noise)` for
     `_candidate_losses` (`noise`: `(lo, hi, noise)`, the clipping bounds and the noise
     of one original pixel)."""
     from .model import _pixel_edges, _samples_for
@@ -321,7 +321,8 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
     args0 = (x0c, y0c, to_device(cimg), to_device(scale), clip0,
              to_device(float(star_sigma is None)))  # fmt: skip
-    return args0, setup0, (lo, hi, noise)
+    halves = to_device([prof.inner_half, prof.outer_half])
+    return halves, args0, setup0, (lo, hi, noise)
 
 
 def _rows(cands):
@@ -336,9 +337,8 @@ def preload_search(img, prof: _Profile, scale) -> None:
     thread, while the caller goes on (`ring_start` then finds it loaded)."""
     if not _programs.keeping():
         return
-    args0, setup0, _ = _search_inputs(img, prof, None, scale)
+    halves, args0, setup0, _ = _search_inputs(img, prof, None, scale)
     cands = _rows(_ring_candidates(prof, img.shape[1], None))
-    halves = to_device([prof.inner_half, prof.outer_half])
     _candidate_losses.preload(to_device(cands), halves, args0, setup0, to_device(1))
 
 
@@ -351,7 +351,7 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
     noise of one original pixel (data units).
     """
     w = img.shape[1]
-    args0, setup0, (lo, hi, noise) = _search_inputs(img, prof, star_sigma, scale)
+    halves, args0, setup0, (lo, hi, noise) = _search_inputs(img, prof, star_sigma, scale)
     cands = _rows(_ring_candidates(prof, w, star_sigma))
     if init is not None:
         # Starting values in `init`: their own candidates only (the grid rows are skipped).
@@ -363,7 +363,6 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
             f"no camera distance puts an Einstein ring at {prof.ring_radius:.3g} pixels "
             f"from the centre of a {w}-pixel-wide image"
         )
-    halves = to_device([prof.inner_half, prof.outer_half])
 
     def losses(c, steps):
         out = _candidate_losses(to_device(c), halves, args0, setup0, to_device(steps))
