@@ -19,9 +19,11 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
+from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
 from ._util import OLDER_CPU_FUSION, filter_jit_cpu, fusion_barrier, is_concrete
 
@@ -110,22 +112,21 @@ class RayMap(eqx.Module):
         - `iterations`: duplication steps of Carlson's $R_F$ in the closed form at the
           knots (8: round-off; 6: 3e-14 rad, `trace`'s ladder).
         """
-        d = jnp.asarray(distance, jnp.result_type(float, distance))
+        dtype = jnp.result_type(float, distance)
+        concrete_d = is_concrete(distance)
+        # A concrete distance stays on the host (`jnp.asarray` would compile a program).
+        d = np.asarray(distance, dtype) if concrete_d else jnp.asarray(distance, dtype)
         if d.ndim != 0:
             raise ValueError(f"RayMap.build needs a scalar distance, got shape {d.shape}")
-        if knots is None:
-            knots = default_knots(accuracy, exact_slopes)
-        if not 0.0 < alpha_max <= math.pi:
-            raise ValueError(f"alpha_max={alpha_max!r} must be in (0, pi] radians")
-        settings = dict(knots=int(knots), max_windings=float(max_windings), captured=captured,
-                        alpha_max=float(alpha_max), exact_slopes=exact_slopes,
-                        iterations=int(iterations))  # fmt: skip
-        if not is_concrete(d):  # part of the caller's program
+        settings = _settings(accuracy, knots, max_windings, captured, alpha_max,
+                             exact_slopes, iterations)  # fmt: skip
+        if not concrete_d:  # part of the caller's program
             return _tabulated(cls, d, **settings)
         # A concrete distance: one compiled program a setting, reused for every distance
-        # (op by op, each later build took 0.45 s; compiled, 0.03 s). An eager jacfwd
-        # or grad through the build traces it, so it stays op by op there.
-        return _tabulated_compiled(cls, d, settings)
+        # (op by op, each later build took 0.45 s; compiled, 0.03 s), and the table of
+        # each of the last few distances kept for the next build. An eager jacfwd or
+        # grad through the build traces it, so it stays op by op there.
+        return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()))
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated escape angle (radians) at `alpha`; meaningful where
@@ -246,9 +247,58 @@ def _tabulated(cls, d, *, knots, max_windings, captured, alpha_max, exact_slopes
     return cls(d, alpha_sh, *outer, inner, peri, max_windings)
 
 
+def _settings(
+    accuracy=1e-10,
+    knots=None,
+    max_windings=10.0,
+    captured=False,
+    alpha_max=math.pi,
+    exact_slopes=False,
+    iterations=8,
+) -> dict:
+    """`RayMap.build`'s keyword arguments checked, the number of knots resolved."""
+    if knots is None:
+        knots = default_knots(accuracy, exact_slopes)
+    if not 0.0 < alpha_max <= math.pi:
+        raise ValueError(f"alpha_max={alpha_max!r} must be in (0, pi] radians")
+    return dict(knots=int(knots), max_windings=float(max_windings), captured=captured,
+                alpha_max=float(alpha_max), exact_slopes=exact_slopes,
+                iterations=int(iterations))  # fmt: skip
+
+
+def _structure(cls, d, settings: dict):
+    """The pytree structure of a built table, known without tracing it."""
+    sides = {"inner": (0.0,) * 4, "periapsis": (0.0,) * 2} if settings["captured"] else {}
+    return jax.tree.structure(cls(*(0.0,) * 6, **sides, max_windings=settings["max_windings"]))
+
+
 @functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
 def _tabulated_compiled(cls, d, settings: dict):
     return _tabulated(cls, d, **settings)
+
+
+# Kept between processes where the CLI (or `keep_programs`) keeps its cache.
+_tabulated_compiled = Stored(_tabulated_compiled, _structure)
+
+
+@functools.lru_cache(maxsize=16)
+def _tabulated_recent(cls, dtype: str, distance: float, settings: tuple):
+    """The tables of the last distances built eagerly (a few thousand knots each): the
+    next `trace` at the same camera distance reuses its table."""
+    return _tabulated_compiled(cls, np.asarray(distance, dtype), dict(settings))
+
+
+def placeholder(dtype, lead: tuple = (), **options) -> "RayMap":
+    """Zeros shaped as the table `RayMap.build(distance, **options)` makes in `dtype`,
+    with leading axes `lead`: for compiling a program that reads a table before the
+    table is built."""
+    settings = _settings(**options)
+    n = settings["knots"]
+    shapes = [(), (), (n,), (), (n,), (n,)]
+    if settings["captured"]:
+        shapes += [(n,), (), (n,), (n,), (n,), (n,)]
+    leaves = [np.zeros(lead + s, dtype) for s in shapes]
+    return jax.tree.unflatten(_structure(RayMap, None, settings), leaves)
 
 
 def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):

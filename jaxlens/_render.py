@@ -25,7 +25,7 @@ from . import _kernel
 from ._camera import Camera
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
 from ._programs import Stored
-from ._raymap import RayMap, default_knots
+from ._raymap import RayMap, placeholder
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
@@ -151,9 +151,7 @@ def _compile_ahead(scene, p: Plan, dtype):
 def _map_placeholder(frames: int, accuracy: float, dtype) -> RayMap:
     """Zeros shaped as `frames` stacked `_build_map` results: known without tracing the
     table's program (0.2 s of a render whose programs come from the cache)."""
-    knots = default_knots(accuracy)
-    shapes = [(frames,), (frames,), (frames, knots), (frames,), (frames, knots), (frames, knots)]
-    return jax.tree.unflatten(_MAP_STRUCTURE, [np.zeros(s, dtype) for s in shapes])
+    return placeholder(dtype, (frames,), accuracy=accuracy, **TABLE_SETTINGS)
 
 
 def render(

@@ -1,6 +1,7 @@
 """`trace`: camera rays -> escape angle and capture, the single source of truth for Phi."""
 
 import abc
+import contextlib
 import functools
 import math
 from typing import ClassVar, final
@@ -16,7 +17,7 @@ from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
-from ._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
+from ._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, to_device
 
 
 class TraceResult(eqx.Module):
@@ -257,12 +258,48 @@ def _compiled(method, alpha, distance, max_windings):
 _compiled = Stored(_compiled, lambda *_: jax.tree.structure(TraceResult(0, 0, 0)))
 
 
+@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+def _through_map(ray_map, alpha):
+    return ray_map(alpha)
+
+
+_through_map = Stored(_through_map, lambda *_: jax.tree.structure(TraceResult(0, 0, 0)))
+
+# The kinds of `_through_map` compiled ahead (while their first table was built).
+_AHEAD: set = set()
+
+
+def _table_rays(method: "Table", alpha, distance, max_windings):
+    """An eager `Table` trace of padded rays at one distance: the table built by its own
+    program (kept for the next call at that distance, see `RayMap.build`), then the
+    rays looked up in it. On a first call the look-up's program compiles on a thread
+    while the table's compiles and runs."""
+    from ._raymap import RayMap, placeholder
+
+    settings = dict(accuracy=method.accuracy, max_windings=float(max_windings),
+                    captured=True, **TABLE_SETTINGS)  # fmt: skip
+    kind = (method.accuracy, float(max_windings), alpha.shape, alpha.dtype.name)
+    ahead = contextlib.nullcontext()
+    if kind not in _AHEAD:
+        _AHEAD.add(kind)
+        # Traced and lowered here, compiled on the thread (two traces on two threads
+        # would take turns with the GIL).
+        try:
+            lowered = _through_map.lower(placeholder(alpha.dtype, **settings), alpha)
+            ahead = compile_ahead(lowered.compile)
+        except Exception:  # noqa: BLE001 - the call itself reports it
+            pass
+    with ahead:
+        ray_map = RayMap.build(distance, **settings)
+    return _through_map(ray_map, alpha)
+
+
 def _eager(method, alpha, distance, dtype, max_windings):
-    """`method` on concrete rays as one compiled program, not op by op: the rays are
-    flattened and padded to `_bucket` of their count (with a ray that escapes), so
-    every batch size up to the bucket reuses the program; the result is cut back.
-    Host arrays are padded on the host (no device op to compile); device arrays stay
-    on their device."""
+    """`method` on concrete rays as one compiled program, not op by op (a table at one
+    distance: two, `_table_rays`): the rays are flattened and padded to `_bucket` of
+    their count (with a ray that escapes), so every batch size up to the bucket reuses
+    the program; the result is cut back. Host arrays are padded on the host (no device
+    op to compile); device arrays stay on their device."""
     shape = jnp.broadcast_shapes(jnp.shape(alpha), distance.shape)
     n = math.prod(shape)
     m = _bucket(n)
@@ -273,8 +310,11 @@ def _eager(method, alpha, distance, dtype, max_windings):
         return xp.concatenate([x, xp.full(m - n, fill, dtype)]) if m > n else x
 
     a = padded(alpha, 0.5 * math.pi)
-    d = distance if distance.ndim == 0 else padded(distance, 10.0)
-    out = _compiled(method, a, d, max_windings)
+    if isinstance(method, Table) and distance.ndim == 0:
+        out = _table_rays(method, a, distance, max_windings)
+    else:
+        d = distance if distance.ndim == 0 else padded(distance, 10.0)
+        out = _compiled(method, a, d, max_windings)
     if m == n:
         return jax.tree.map(lambda x: x.reshape(shape), out)
     if jax.default_backend() == "cpu":
@@ -372,7 +412,9 @@ def trace(
     float32 and float64 (the dtype of the inputs; float64 needs
     `jax_enable_x64`). Called eagerly, it runs as one compiled program, kept for
     later calls with the same method and dtype and a ray count in the same bucket
-    (counts are padded to 2^k or 1.5 x 2^k, at least 1024).
+    (counts are padded to 2^k or 1.5 x 2^k, at least 1024); the table method at one
+    distance as two, the table's and the look-up's, and the tables of the last 16
+    distances are kept for the next call at one of them.
     """
     if not (accuracy > 0):
         raise ValueError(f"accuracy={accuracy!r} must be > 0 (radians)")

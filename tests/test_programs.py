@@ -6,12 +6,16 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from jaxlens import _programs
 
 # Keeps (first run) or loads (second run) a program with a QR decomposition in the
 # folder given, and prints a value of its result and whether it was traced.
 _CHILD = """
 import sys
+
+import pytest
 import equinox as eqx, jax, jax.numpy as jnp, numpy as np
 from jaxlens import _programs
 
@@ -84,34 +88,38 @@ def test_a_program_xla_cached_is_kept_whole(tmp_path):
     assert not traced and loaded == first
 
 
-# `jaxlens.keep_programs` in a script: the first process keeps `trace`'s program, the
-# next loads it (its entry has no program to compile) and gives the same rays.
+# `jaxlens.keep_programs` in a script: the first process keeps `trace`'s programs, the
+# next loads them (their entries have no program to compile) and gives the same rays.
 _KEEP = """
 import sys
+
+import pytest
 import numpy as np
 import jaxlens as jl
-from jaxlens import _trace
+from jaxlens import _raymap, _trace
 
 folder = jl.keep_programs(sys.argv[1])
-r = jl.trace(np.linspace(0.05, 3.0, 2000), 10.0)
-entries = list(_trace._compiled._programs.values())
+r = jl.trace(np.linspace(0.05, 3.0, int(sys.argv[2])), 10.0)
+stored = (_trace._compiled, _trace._through_map, _raymap._tabulated_compiled)
+entries = [e for f in stored for e in f._programs.values()]
 print(float(np.sum(np.asarray(r.phi))), all(e["program"] is None for e in entries),
       len(entries), folder)
 """
 
 
-def test_keep_programs_lets_the_next_process_load_trace(tmp_path):
+@pytest.mark.parametrize("rays, programs", [(2000, 1), (60_000, 2)])  # exact; table
+def test_keep_programs_lets_the_next_process_load_trace(tmp_path, rays, programs):
     def run():
-        done = subprocess.run([sys.executable, "-c", _KEEP, str(tmp_path)],
+        done = subprocess.run([sys.executable, "-c", _KEEP, str(tmp_path), str(rays)],
                               capture_output=True, text=True, timeout=300)  # fmt: skip
         assert done.returncode == 0, done.stderr[-2000:]
         value, loaded, count, folder = done.stdout.split()
-        assert count == "1" and folder == str(tmp_path)
+        assert count == str(programs) and folder == str(tmp_path)
         return float(value), loaded == "True"
 
     first, loaded_first = run()
     assert not loaded_first
-    assert len(list((tmp_path / "jaxlens-programs").glob("*.executable"))) == 1
+    assert len(list((tmp_path / "jaxlens-programs").glob("*.executable"))) == programs
     again, loaded_again = run()
     assert loaded_again and again == first
 

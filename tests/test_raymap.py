@@ -70,6 +70,25 @@ def test_table_method_through_trace():
     assert float(jnp.max(jnp.abs(a.phi - b.phi))) < 1e-9
 
 
+def test_eager_table_trace_keeps_the_table_of_its_distance():
+    # Called eagerly, the table method builds the table of a distance once (its own
+    # program), looks the rays up in another, and gives what the jitted call gives.
+    from jaxlens import _raymap
+
+    alpha = np.linspace(0.13, 3.0, 3000)
+    _raymap._tabulated_recent.cache_clear()
+    first = jl.trace(alpha, 17.0, method="table", accuracy=1e-9)
+    again = jl.trace(alpha[:100], 17.0, method="table", accuracy=1e-9)
+    other = jl.trace(alpha[:100], 18.0, method="table", accuracy=1e-9)
+    info = _raymap._tabulated_recent.cache_info()
+    assert (info.misses, info.hits) == (2, 1)
+    jitted = jax.jit(lambda a: jl.trace(a, 17.0, method="table", accuracy=1e-9))(alpha)
+    for got, want in zip(jax.tree.leaves(first), jax.tree.leaves(jitted), strict=True):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(np.asarray(again.phi), np.asarray(first.phi)[:100])
+    assert not np.array_equal(np.asarray(other.phi), np.asarray(again.phi))
+
+
 def test_table_needs_scalar_distance():
     with pytest.raises(ValueError, match="scalar distance"):
         jl.RayMap.build(jnp.array([10.0, 20.0]))
