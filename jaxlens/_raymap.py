@@ -272,7 +272,13 @@ def _structure(cls, d, settings: dict):
     return jax.tree.structure(cls(*(0.0,) * 6, **sides, max_windings=settings["max_windings"]))
 
 
-@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+# The closed form on a few thousand knots, once a distance: compiled without LLVM's
+# optimisations (the knots' interpolation error unchanged) it compiles in 0.16 s
+# instead of 0.37 s and runs in 1.2 ms instead of 0.5 ms (float32, 1e-6 rad, both sides).
+BUILD_OPTIONS = {**OLDER_CPU_FUSION, "xla_backend_optimization_level": 0}
+
+
+@functools.partial(filter_jit_cpu, options=BUILD_OPTIONS)
 def _tabulated_compiled(cls, d, settings: dict):
     return _tabulated(cls, d, **settings)
 
@@ -313,7 +319,10 @@ def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):
     for span, sign in spans:
         tau_hi = jnp.log(jnp.maximum(span, jnp.finfo(d.dtype).tiny)) - 1e-13
         dtau = (tau_hi - tau_lo) / (n - 1)
-        tau = tau_lo + dtau * steps
+        # Counted down from the top: tau_lo + dtau * k loses ~ulp(|tau_lo|) ~ 2e-6 (float32)
+        # to rounding near the top (tau ~ 0) unless the machine fuses it into one
+        # multiply-add, and a knot position that is off by that moves the look-up.
+        tau = tau_hi - dtau * steps[::-1]
         gap = jnp.exp(tau)
         knots.append(tau)
         dtaus.append(dtau)

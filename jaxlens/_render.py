@@ -25,11 +25,11 @@ from . import _kernel
 from ._camera import Camera
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
 from ._programs import Stored
-from ._raymap import RayMap, placeholder
+from ._raymap import BUILD_OPTIONS, RayMap, placeholder
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, is_concrete
+from ._util import compile_ahead, filter_jit_cpu, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -53,7 +53,7 @@ def _map_dtype(dtype):
     return jnp.float64 if jax.config.read("jax_enable_x64") else dtype
 
 
-@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+@functools.partial(filter_jit_cpu, options=BUILD_OPTIONS)
 def _build_map(distance, accuracy, dtype):
     # One compiled table builder for every distance of an accuracy, as `trace`'s table
     # builds it (`TABLE_SETTINGS`). Returned in the pixel dtype with a batch axis: no
@@ -69,11 +69,19 @@ _MAP_STRUCTURE = jax.tree.structure(RayMap(*(0.0,) * 6))
 _build_map = Stored(_build_map, lambda *_: _MAP_STRUCTURE)
 
 
+@functools.lru_cache(maxsize=16)
+def _map_of(distance: float, map_dtype: str, accuracy: float, dtype: str) -> RayMap:
+    """`_build_map` of one distance; those of the last 16 distances are kept (the next
+    render from the same place reuses its ray map)."""
+    return _build_map(np.asarray(distance, map_dtype), accuracy, jnp.dtype(dtype))
+
+
 def ray_maps(distances, accuracy: float, dtype) -> RayMap:
     """Ray maps of a batch of distances `(N,)` (units of R_S), stacked: built in
     float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`."""
     d = np.asarray(distances, _map_dtype(dtype)).reshape(-1)
-    maps = [_build_map(x, float(accuracy), jnp.dtype(dtype)) for x in d]
+    key = (d.dtype.name, float(accuracy), jnp.dtype(dtype).name)
+    maps = [_map_of(x.item(), *key) for x in d]
     if len(maps) == 1:
         return maps[0]
     # Small tables (a few thousand knots): joined on the host, not by a compiled stack.
