@@ -27,6 +27,18 @@ def is_concrete(tree) -> bool:
     return all(concrete(x) is not None for x in jax.tree.leaves(tree) if eqx.is_array(x))
 
 
+def tracing() -> bool:
+    """True inside a JAX transformation's trace (`jit`, `grad`, `vmap`, ...), also where
+    the caller's own values are concrete (a closure, a static argument): a compiled
+    program of ours called there would be a nested jit, its result a constant."""
+    try:
+        from jax._src import core
+
+        return not core.trace_state_clean()
+    except (ImportError, AttributeError):  # not in this JAX: take the traced path
+        return True
+
+
 def is_zero(x) -> bool:
     """True when `x` is concretely zero (False for tracers)."""
     c = concrete(x)

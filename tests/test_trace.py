@@ -126,6 +126,18 @@ def test_jit_vmap_and_both_gradient_modes():
         )
 
 
+@pytest.mark.parametrize("n", [10, 60_000])  # the exact method; the table
+def test_host_rays_held_by_a_jitted_function_are_part_of_its_program(n):
+    # Rays and a distance the function holds (NumPy, Python numbers) are concrete
+    # inside its trace: traced with it, not run as trace's own compiled programs (a
+    # nested jit with XLA options, which JAX refuses).
+    alpha = np.linspace(0.1, 3.0, n)
+    inside = jax.jit(lambda: jl.trace(alpha, 10.0).phi)()
+    np.testing.assert_allclose(inside, jl.trace(alpha, 10.0).phi, rtol=1e-12, atol=1e-12)
+    table = eqx.filter_jit(jl.RayMap.build)(5.0, accuracy=1e-8)  # a static distance
+    np.testing.assert_allclose(table.phi, jl.RayMap.build(5.0, accuracy=1e-8).phi, rtol=1e-12)
+
+
 def test_float64_needed_for_accuracy_is_the_inputs_dtype():
     r = jl.trace(jnp.float32(0.3), jnp.float32(20.0))
     assert r.phi.dtype == jnp.float32
