@@ -96,3 +96,31 @@ def free_port() -> int:
     from jaxlens._multi import free_port
 
     return free_port()
+
+
+@pytest.fixture
+def jax_events():
+    """`with jax_events(event) as names:` the programs (`fun_name`) for which JAX
+    reported `event` (e.g. "/jax/core/compile/backend_compile_duration") in the block."""
+    import contextlib
+
+    import jax.monitoring
+
+    @contextlib.contextmanager
+    def record(event_name):
+        names, active = [], [True]
+
+        def listen(event, duration, **kwargs):
+            if active[0] and event == event_name:
+                names.append(kwargs.get("fun_name"))
+
+        jax.monitoring.register_event_duration_secs_listener(listen)
+        try:
+            yield names
+        finally:
+            active[0] = False  # older jax versions cannot unregister: the listener goes quiet
+            unregister = getattr(jax.monitoring, "unregister_event_duration_listener", None)
+            if unregister is not None:
+                unregister(listen)
+
+    return record

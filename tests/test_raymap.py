@@ -89,23 +89,11 @@ def test_eager_table_trace_keeps_the_table_of_its_distance():
     assert not np.array_equal(np.asarray(other.phi), np.asarray(again.phi))
 
 
-def test_the_look_up_compiled_ahead_is_the_one_the_table_trace_runs():
+def test_the_look_up_compiled_ahead_is_the_one_the_table_trace_runs(jax_events):
     # An eager table trace compiles its look-up on a thread while the table's program
     # compiles: the trace must then find it compiled (one compile, not a second).
-    compiled, active = [], [True]
-
-    def listen(event, duration, **kwargs):
-        if active[0] and event == "/jax/core/compile/backend_compile_duration":
-            compiled.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with jax_events("/jax/core/compile/backend_compile_duration") as compiled:
         r = jl.trace(np.linspace(0.05, 3.0, 70_001), 19.0, accuracy=1e-7)  # a new bucket
-    finally:
-        active[0] = False  # older jax versions cannot unregister: the listener goes quiet
-        unregister = getattr(jax.monitoring, "unregister_event_duration_listener", None)
-        if unregister is not None:
-            unregister(listen)
     assert compiled.count("jit(_through_map)") == 1, compiled
     assert r.phi.shape == (70_001,) and not np.any(np.asarray(r.unresolved))
 

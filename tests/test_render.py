@@ -207,25 +207,13 @@ def test_frames_are_one_batched_render():
         np.testing.assert_allclose(frames[i], single, atol=1e-7)
 
 
-def test_the_block_program_compiled_ahead_is_the_one_the_render_runs():
+def test_the_block_program_compiled_ahead_is_the_one_the_render_runs(jax_events):
     # render compiles its block program on a thread while the ray maps are built (the
     # two compiles overlap); the render must then find it compiled: one compile of
     # each program, not a second for the real ray maps.
-    compiled, active = [], [True]
-
-    def listen(event, duration, **kwargs):
-        if active[0] and event == "/jax/core/compile/backend_compile_duration":
-            compiled.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with jax_events("/jax/core/compile/backend_compile_duration") as compiled:
         cams = approach(Camera(20.0, math.radians(60.0), 14, 10, supersample=2), [30.0, 8.0])
         frames = render_frames(cams, SKY)  # a size no other test renders
-    finally:
-        active[0] = False  # older jax versions cannot unregister: the listener goes quiet
-        unregister = getattr(jax.monitoring, "unregister_event_duration_listener", None)
-        if unregister is not None:
-            unregister(listen)
     assert jl.plan(jl.Scene(cams, SKY)).geometry == "table"
     assert compiled.count("jit(_block)") == 1, compiled
     single = render(Camera(8.0, math.radians(60.0), 14, 10, supersample=2), SKY)
@@ -245,11 +233,13 @@ def test_a_render_from_the_same_place_reuses_its_ray_map():
     assert not np.array_equal(first, moved)
 
 
-def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_path):
+def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_path, jax_events):
     # Where the CLI keeps its cache, the render's programs are kept compiled (their
     # executables): a later process calls them without tracing the renderer. A fresh
     # process is played by forgetting the programs and the ray maps held in memory.
     from jaxlens import _programs, _render
+
+    stored = (_render._block, _render._build_map)
 
     def forget():
         for f in stored:
@@ -259,23 +249,16 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
     scene = jl.Scene(Camera(20.0, math.radians(50.0), 18, 12, supersample=2), SKY)
     direct = render(scene)
     _render._map_of.cache_clear()
-    traced, active = [], [True]
-
-    def listen(event, duration, **kwargs):
-        if active[0] and event == "/jax/core/compile/jaxpr_trace_duration":
-            traced.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
     _programs.use_folder(tmp_path)
-    stored = (_render._block, _render._build_map)
     try:
-        first = render(scene)
-        kept = sorted((tmp_path / "jaxlens-programs").glob("*.executable"))
-        assert len(kept) == 2, kept
-        forget()
-        traced.clear()
-        again = render(scene)
-        assert "_block" not in traced and "_build_map" not in traced, traced
+        with jax_events("/jax/core/compile/jaxpr_trace_duration") as traced:
+            first = render(scene)
+            kept = sorted((tmp_path / "jaxlens-programs").glob("*.executable"))
+            assert len(kept) == 2, kept
+            forget()
+            traced.clear()
+            again = render(scene)
+            assert "_block" not in traced and "_build_map" not in traced, traced
         # A damaged file is made again, not trusted.
         kept[0].write_bytes(b"not a program")
         forget()
@@ -283,10 +266,6 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
         assert kept[0].read_bytes() != b"not a program"
     finally:
         _programs.use_folder(None)
-        active[0] = False
-        unregister = getattr(jax.monitoring, "unregister_event_duration_listener", None)
-        if unregister is not None:
-            unregister(listen)
     for image in (first, again, repaired):
         np.testing.assert_array_equal(image, direct)
 
