@@ -18,8 +18,9 @@ importing jaxlens, then JAX's own compile events (`jax.monitoring`: tracing to a
 lowering to MLIR, XLA's compile, retrieval from XLA's persistent cache) and the rest
 (host set-up, loading the executables the CLI keeps in its cache folder, and running).
 Three warm figures are measured inside one process: an eager `trace` on 100,000 rays
-called again at the same distance, the same call jitted, and the notebook explorer's
-time from a slider change to its new image (distance, FOV, star position; each new
+called again at the same distance and the same call jitted (each the fastest of 20
+calls after one), and the notebook explorer's time from a slider change to its new
+image (distance, FOV, star position, the median of five changes after one; each new
 distance needs a new ray map).
 
 Writes `results/latency.md` and `results/latency.json`. `--quick`: one repeat and no
@@ -145,16 +146,19 @@ def _ring_png(folder: pathlib.Path) -> str:
 
 def _in_process():
     """Warm figures inside one process: eager trace again at one distance, jitted, and
-    the explorer's slider-to-image times."""
+    the explorer's slider-to-image times; in float64, as the README's example (run
+    first, before this process renders the fit's ring, which sets float64 too)."""
     import jax
     import numpy as np
 
     import jaxlens
 
+    jax.config.update("jax_enable_x64", True)
+
     alpha = np.linspace(0.05, 3.0, 100_000)
     out = {}
 
-    def best(f, n=5):
+    def best(f, n=20):
         f()
         ts = []
         for _ in range(n):
@@ -206,6 +210,7 @@ def main():
     # `import jax` reads its byte code.
     compileall.compile_dir(ROOT / "jaxlens", quiet=1)
     load = os.getloadavg()[0]
+    inproc = _in_process()
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="jaxlens-latency-"))
     off = dict(os.environ, JAXLENS_CACHE_DIR="", JAX_COMPILATION_CACHE_DIR="")
     rows = []
@@ -238,7 +243,6 @@ def main():
         run("jaxlens fit (benchmark ring), cold", _child_argv("fit", str(ring)))
         _timed(_child_argv("fit", str(ring)), warm)
         run("jaxlens fit (benchmark ring), warm cache", _child_argv("fit", str(ring)), warm)
-    inproc = _in_process()
     shutil.rmtree(tmp, ignore_errors=True)
     write_report(rows, inproc, load, _common)
 
@@ -286,9 +290,11 @@ def write_report(rows, inproc, load, common):
                      + " | ".join(cells) + " |")  # fmt: skip
     lines += [
         "",
-        "Warm, in one process:",
+        "Warm, in one process (trace: the fastest of 20 calls after one; explorer: the "
+        "median of five changes after one):",
         "",
-        f"- `trace(alpha, 10.0)` on 100,000 rays, eager, called again at the same distance: "
+        f"- `trace(alpha, 10.0)` on 100,000 float64 rays, eager, called again at the same "
+        "distance: "
         f"{1e3 * inproc['trace_eager_again']:.1f} ms; the same call jitted: "
         f"{1e3 * inproc['trace_jitted']:.1f} ms.",
     ]
