@@ -111,6 +111,10 @@ class RayMap(eqx.Module):
           several times faster.
         - `iterations`: duplication steps of Carlson's $R_F$ in the closed form at the
           knots (8: round-off; 6: 3e-14 rad, `trace`'s ladder).
+
+        Called with a concrete distance outside a transformation (not under `jit`,
+        `grad`, `vmap`), it runs one compiled program a setting and keeps the tables of
+        the last 16 distances: a later call with one of them returns the same table.
         """
         dtype = jnp.result_type(float, distance)
         concrete_d = is_concrete(distance) and not tracing()
