@@ -95,6 +95,10 @@ def _child(task: str, arg: str) -> None:
     out = {"import_jax": t_jax - t0, "import_jaxlens": t_lens - t_jax, **spent}
     out["rest"] = t_end - t_lens - sum(spent.values())
     print(json.dumps(out))
+    if task in ("render", "fit"):  # the process ends as the `jaxlens` command's does
+        from jaxlens.cli import finish
+
+        finish(0)
 
 
 # -------------------------------------------------------------------- parent side
@@ -267,7 +271,9 @@ def write_report(rows, inproc, load, common):
         f"(median of {len(rows[0]['walls'])} fresh processes a row; jaxlens's modules "
         "byte-compiled first, as an installed wheel's are).",
         "",
-        "Wall: the whole process, Python start-up included. Ratio: to `import jax` in the "
+        "Wall: the whole process, Python start-up and exit included (the render and fit "
+        "rows end as the `jaxlens` command does, `jaxlens.cli.finish`; the trace rows as a "
+        "script does). Ratio: to `import jax` in the "
         "same run. The parts (seconds, medians) are measured inside the process: importing "
         "jax and jaxlens, JAX's tracing, lowering and XLA compilation (its own events), "
         "retrieval from XLA's persistent cache, and the rest (host work, loading the "

@@ -164,6 +164,9 @@ class filter_jit_cpu:
         return jitted.lower(dynamic, static)
 
 
+_PENDING: list = []  # compile_ahead's futures not known to be done
+
+
 class compile_ahead:
     """Compile a jitted function (`jax.jit`, `eqx.filter_jit`, `filter_jit_cpu`) for
     `args` on a background thread; `with compile_ahead(f, *args): ...` runs the block
@@ -205,6 +208,14 @@ class compile_ahead:
         pool = ThreadPoolExecutor(1, thread_name_prefix="jaxlens-compile")
         self._future = pool.submit(run)
         pool.shutdown(wait=False)
+        _PENDING[:] = [f for f in _PENDING if not f.done()] + [self._future]
+
+    @staticmethod
+    def wait_all() -> None:
+        """Wait for every compile still running on a thread (before a quick exit: each
+        writes the caches it keeps)."""
+        for future in list(_PENDING):
+            future.exception()  # waits; a failed compile is the call's to report
 
     def __enter__(self):
         return self

@@ -223,5 +223,30 @@ def main(argv=None) -> int:
         _set_handlers(previous)
 
 
+def finish(code: int) -> None:
+    """End the process with exit status `code` once its work is done, the quick way:
+    compiles still running on a thread are waited for (they write the caches), the
+    exit handlers run (JAX's backends and `jax.distributed` shut down, logs flushed),
+    the output streams are flushed, and the interpreter then exits without freeing its
+    modules one by one (0.2 s after a default render)."""
+    import atexit
+
+    util = sys.modules.get("jaxlens._util")  # not imported: nothing compiled
+    if util is not None:
+        util.compile_ahead.wait_all()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe or stream: nothing more to say
+            pass
+    os._exit(code)
+
+
+def console() -> None:
+    """The `jaxlens` command (its console script, and `python -m jaxlens`)."""
+    finish(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

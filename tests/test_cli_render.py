@@ -475,6 +475,33 @@ def test_version_and_python_dash_m(capsys):
     assert p.returncode == 0 and p.stdout.strip() == f"jaxlens {jaxlens.__version__}"
 
 
+# A command's end (`cli.finish`): a compile still running on a thread (it writes the
+# caches) is waited for, the exit handlers run, the output is flushed, the status kept.
+_FINISH = """
+import atexit, sys, time
+from jaxlens import _util
+from jaxlens.cli import finish
+
+def slow(path):
+    time.sleep(0.5)
+    open(path, "w").write("compiled")
+
+_util.compile_ahead.calls((slow, sys.argv[1]))
+atexit.register(lambda: print("exit handler"))
+print("done", end="")
+finish(3)
+"""
+
+
+def test_a_command_ends_after_its_compiles_and_exit_handlers(tmp_path):
+    marker = tmp_path / "marker"
+    p = subprocess.run([sys.executable, "-c", _FINISH, str(marker)], capture_output=True,
+                       text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 3, p.stderr[-2000:]
+    assert marker.read_text() == "compiled"
+    assert p.stdout == "doneexit handler\n"
+
+
 def test_command_line_process_has_no_traceback(tmp_path):
     env = dict(os.environ, JAXLENS_CACHE_DIR="")
     p = subprocess.run(
