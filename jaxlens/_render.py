@@ -13,7 +13,6 @@ and `grad` with respect to any array field of the scene.
 
 import contextlib
 import dataclasses
-import functools
 
 import equinox as eqx
 import jax
@@ -25,11 +24,11 @@ from . import _kernel
 from ._camera import Camera
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
 from ._programs import Stored
-from ._raymap import BUILD_OPTIONS, RayMap, placeholder
+from ._raymap import RayMap, placeholder
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import compile_ahead, filter_jit_cpu, is_concrete
+from ._util import compile_ahead, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -53,38 +52,24 @@ def _map_dtype(dtype):
     return jnp.float64 if jax.config.read("jax_enable_x64") else dtype
 
 
-@functools.partial(filter_jit_cpu, options=BUILD_OPTIONS)
-def _build_map(distance, accuracy, dtype):
-    # One compiled table builder for every distance of an accuracy, as `trace`'s table
-    # builds it (`TABLE_SETTINGS`). Returned in the pixel dtype with a batch axis: no
-    # eager op (each a small compile in a fresh process) between it and the block
-    # program.
-    ray_map = RayMap.build(distance, accuracy=accuracy, **TABLE_SETTINGS)
-    return jax.tree.map(lambda a: a[None], ray_map.astype(dtype))
-
-
-# Kept between processes where the CLI keeps its cache; the result's structure (the
-# fields `RayMap.build` fills here) is known without tracing.
-_MAP_STRUCTURE = jax.tree.structure(RayMap(*(0.0,) * 6))
-_build_map = Stored(_build_map, lambda *_: _MAP_STRUCTURE)
-
-
-@functools.lru_cache(maxsize=16)
-def _map_of(distance: float, map_dtype: str, accuracy: float, dtype: str) -> RayMap:
-    """`_build_map` of one distance; those of the last 16 distances are kept (the next
-    render from the same place reuses its ray map)."""
-    return _build_map(np.asarray(distance, map_dtype), accuracy, jnp.dtype(dtype))
-
-
 def ray_maps(distances, accuracy: float, dtype) -> RayMap:
     """Ray maps of a batch of distances `(N,)` (units of R_S), stacked: built in
-    float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`."""
+    float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`.
+
+    Each is `RayMap.build`'s (one compiled program for every distance of an accuracy,
+    as `trace`'s table is built, `TABLE_SETTINGS`; the tables of the last distances
+    kept, so the next render from the same place reuses its map), put in the pixel
+    dtype with a batch axis on the host: no eager op (each a small compile in a fresh
+    process) between it and the block program."""
     d = np.asarray(distances, _map_dtype(dtype)).reshape(-1)
-    key = (d.dtype.name, float(accuracy), jnp.dtype(dtype).name)
-    maps = [_map_of(x.item(), *key) for x in d]
-    if len(maps) == 1:
-        return maps[0]
-    # Small tables (a few thousand knots): joined on the host, not by a compiled stack.
+    maps = [
+        jax.tree.map(
+            lambda a: np.asarray(a, dtype)[None],
+            RayMap.build(x, accuracy=accuracy, **TABLE_SETTINGS),
+        )  # fmt: skip
+        for x in d
+    ]
+    # Small tables (a few thousand knots): placed, and joined, on the host.
     return jax.tree.map(lambda *a: jax.device_put(np.concatenate(a)), *maps)
 
 
@@ -157,7 +142,7 @@ def _compile_ahead(scene, p: Plan, dtype):
 
 
 def _map_placeholder(frames: int, accuracy: float, dtype) -> RayMap:
-    """Zeros shaped as `frames` stacked `_build_map` results: known without tracing the
+    """Zeros shaped as `frames` stacked `ray_maps` results: known without tracing the
     table's program (0.2 s of a render whose programs come from the cache)."""
     return placeholder(dtype, (frames,), accuracy=accuracy, **TABLE_SETTINGS)
 

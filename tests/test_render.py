@@ -221,13 +221,13 @@ def test_the_block_program_compiled_ahead_is_the_one_the_render_runs(jax_events)
 
 
 def test_a_render_from_the_same_place_reuses_its_ray_map():
-    from jaxlens import _render
+    from jaxlens import _raymap
 
-    _render._map_of.cache_clear()
+    _raymap._tabulated_recent.cache_clear()
     cam = Camera(13.0, math.radians(50.0), 12, 8)
     first, again = render(cam, SKY), render(cam, SKY)
     moved = render(Camera(13.5, math.radians(50.0), 12, 8), SKY)
-    info = _render._map_of.cache_info()
+    info = _raymap._tabulated_recent.cache_info()
     assert (info.misses, info.hits) == (2, 1)
     np.testing.assert_array_equal(first, again)
     assert not np.array_equal(first, moved)
@@ -237,18 +237,18 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
     # Where the CLI keeps its cache, the render's programs are kept compiled (their
     # executables): a later process calls them without tracing the renderer. A fresh
     # process is played by forgetting the programs and the ray maps held in memory.
-    from jaxlens import _programs, _render
+    from jaxlens import _programs, _raymap, _render
 
-    stored = (_render._block, _render._build_map)
+    stored = (_render._block, _raymap._tabulated_compiled)
 
     def forget():
         for f in stored:
             f._programs.clear()
-        _render._map_of.cache_clear()
+        _raymap._tabulated_recent.cache_clear()
 
     scene = jl.Scene(Camera(20.0, math.radians(50.0), 18, 12, supersample=2), SKY)
     direct = render(scene)
-    _render._map_of.cache_clear()
+    _raymap._tabulated_recent.cache_clear()
     _programs.use_folder(tmp_path)
     try:
         with jax_events("/jax/core/compile/jaxpr_trace_duration") as traced:
@@ -258,7 +258,7 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
             forget()
             traced.clear()
             again = render(scene)
-            assert "_block" not in traced and "_build_map" not in traced, traced
+            assert "_block" not in traced and "_tabulated_compiled" not in traced, traced
         # A damaged file is made again, not trusted.
         kept[0].write_bytes(b"not a program")
         forget()
