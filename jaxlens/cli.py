@@ -139,9 +139,7 @@ def _failed(args, code: int) -> int:
     """The exit status of a failed command; a process of a multi-process job ends at
     once (`os._exit`), instead of waiting in JAX's shutdown for the others to finish."""
     if getattr(args, "distributed", False):
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
+        _exit_flushed(code)
     return code
 
 
@@ -235,6 +233,11 @@ def finish(code: int) -> None:
     if util is not None:
         util.compile_ahead.wait_all()
     atexit._run_exitfuncs()
+    _exit_flushed(code)
+
+
+def _exit_flushed(code: int) -> None:
+    """`os._exit(code)` once stdout and stderr are flushed."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
