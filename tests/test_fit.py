@@ -156,6 +156,40 @@ def test_clipped_mean():
     )
 
 
+def test_second_pass_check_rescales_residuals_and_jacobian():
+    """A clipped image's re-estimated noise: `_renoised` gives the residuals and the
+    Jacobian of the new noise from the old ones (the model's derivatives through the
+    old clipped slope) and their Newton decrement, as computed directly."""
+    from jaxlens._fit.general import _renoised
+    from jaxlens._fit.noise import clipped_slope
+    from jaxlens._fit.solve import newton_decrement
+
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(3)
+        n = 400
+        model = np.linspace(-0.02, 0.3, n)  # into the clipping at 0
+        dmodel = rng.standard_normal((n, 3))  # d model / d theta
+        weight = rng.uniform(0.5, 2.0, n)
+        data = np.clip(model + 0.01 * rng.standard_normal(n), 0.0, 1.0)
+
+        def rows(clip):
+            lo, hi, s, scale = clip
+            r = weight * (np.asarray(clipped_mean(model, lo, hi, s)) - data) / scale
+            slope = np.asarray(clipped_slope(model, lo, hi, s))
+            return r, (weight * slope / scale)[:, None] * dmodel
+
+        old, new = (0.0, 1.0, 0.01, 0.01), (0.0, 1.0, 0.013, 0.013)
+        prior_r, prior_j = 0.3, np.asarray([[0.0, 0.0, 0.5]])
+        r_old, j_old = rows(old)
+        r_new, j_new = rows(new)
+        r2, j2, dec = _renoised(model, data, weight, jnp.asarray(old), jnp.asarray(new),
+                                np.append(r_old, prior_r), np.vstack([j_old, prior_j]))  # fmt: skip
+        np.testing.assert_allclose(np.asarray(r2), np.append(r_new, prior_r), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(j2), np.vstack([j_new, prior_j]), rtol=1e-10)
+        assert float(dec) == pytest.approx(float(newton_decrement(r2, j2)), rel=1e-12)
+        assert float(dec) > 0.0
+
+
 # ------------------------------------------------------------------ forward model
 
 
@@ -487,8 +521,9 @@ def test_cli(tmp_path, capsys, monkeypatch):
     path = tmp_path / "ring.png"
     write_png(path, noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=16), 16)
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--mass", "10", "--json"]) == 0
-    # The solve, the starting values' search and scan, the arcs' rays: all kept.
-    assert len(list(kept.glob("*.executable"))) == 4 and not list(kept.glob("*.refused"))
+    # The solve, the starting values' search and scan, the arcs' rays, the check of
+    # the re-estimated noise: all kept.
+    assert len(list(kept.glob("*.executable"))) == 5 and not list(kept.glob("*.refused"))
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["converged"] is True and out["transfer"] == "linear"
     assert out["distance"] == pytest.approx(20.0, rel=0.01)

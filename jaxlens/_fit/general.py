@@ -21,11 +21,18 @@ from .._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
-from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, white_noise_found
+from .noise import (
+    _clipping,
+    _noise_clipped,
+    _noise_level,
+    clipped_mean,
+    clipped_slope,
+    white_noise_found,
+)
 from .params import apply, floor_of, in_scene, parameter, split_name, star_of, values_of
 from .pixels import _grid_sets, _pixel_sets
 from .result import _result_name, _ring_verdict
-from .solve import dense_least_squares
+from .solve import dense_least_squares, newton_decrement
 from .table import escape_table
 
 DEFAULT_FREE = (
@@ -46,6 +53,14 @@ DEFAULT_FREE = (
 # when sigma was fitted and no floor was seen; their positions, which fix D
 # against the primary ring's radius, are still used.
 _RING_FLUX_PRIOR = 1.0
+# A fit of a clipped image with the noise estimated takes a second pass with the noise
+# re-estimated from its residuals, unless the first pass's point gains less than this
+# in chi^2 under the new noise (its Newton decrement): a step of 0.03 standard errors,
+# three times the solver's own stop (`solve.SETTLED_CHI2`), well inside what the noise
+# estimate itself is uncertain by. On the fit benchmark's first ring (400 x 300, the
+# noise re-estimated 1.3 % lower) the decrement was 2.3e-4 and the second pass moved
+# D by 0.004 and the rings' flux by 0.01 standard errors, in three steps (1.5 s).
+_RENOISED_CHI2 = 1e-3
 
 
 class _Problem(eqx.Module):
@@ -181,9 +196,30 @@ def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
 
+@jax.jit
+def _renoised(model, data, weight, old, new, r, jac):
+    """The residuals and Jacobian of a Gaussian fit's point (model `model` before
+    clipping, residuals `r` and Jacobian `jac` under the clipping and noise `old`)
+    under the noise `new` (`clip` of `_residuals_model`: lo, hi, noise, scale), and
+    the Newton decrement there (`newton_decrement`): what a pass with the new noise
+    would still gain. The rows' derivatives of the model are the old rows' with the
+    clipped slope and the noise scale changed (rows whose old slope is below 1e-6,
+    clipped away, are dropped); the last residual, the ring-flux prior, is kept."""
+    m = clipped_mean(model, new[0], new[1], new[2])
+    rows = weight * (m - data) / new[3]
+    slope_old = clipped_slope(model, old[0], old[1], old[2])
+    slope_new = clipped_slope(model, new[0], new[1], new[2])
+    factor = jnp.where(slope_old > 1e-6, slope_new / jnp.maximum(slope_old, 1e-6), 0.0)
+    factor = factor * old[3] / new[3]
+    r = jnp.concatenate([rows.ravel(), r[-1:]])
+    jac = jac * jnp.concatenate([factor.ravel(), jnp.ones(1, jac.dtype)])[:, None]
+    return r, jac, newton_decrement(r, jac)
+
+
 # Kept between processes where the CLI keeps its cache; the results' structures.
 _solve = Stored(_solve, lambda *_: jax.tree.structure((0, 0, 0, 0, optx.RESULTS.successful, 0)))
 _loss = Stored(_loss, lambda *_: jax.tree.structure(0))
+_renoised = Stored(_renoised, lambda *_: jax.tree.structure((0, 0, 0)))
 
 
 def _load(image):
@@ -618,11 +654,11 @@ def fit(
         clipped = math.isfinite(lo) or math.isfinite(hi)
         passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
         steps = 0  # over the passes
-        for _ in range(passes):
+        for i in range(passes):
             theta, r, jac, model, result, taken = _solve(to_device(theta0), args,
                                                           *solve_args[1:])  # fmt: skip
             steps += int(taken)
-            if passes == 2:
+            if i == 0 and passes == 2:
                 # The clipped model's noise, re-estimated from the residuals well inside
                 # (lo, hi), for the second pass (same program: the noise is an argument).
                 m_np = np.asarray(model)
@@ -635,7 +671,14 @@ def fit(
                     refit = float(np.std((data - m_np)[inside] * np.sqrt(count[inside])))
                     noise_sigma = min(max(refit, 0.7 * noise_sigma), 1.5 * noise_sigma)
                     clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
+                    # A second pass only where the new noise moves the optimum (see
+                    # `_RENOISED_CHI2`); otherwise the first pass's point stands, with
+                    # the residuals and Jacobian of the new noise.
+                    r2, jac2, dec = _renoised(model, args[3], args[4], args[5], clip, r, jac)
                     args = args[:5] + (clip,) + args[6:]
+                    if float(dec) < _RENOISED_CHI2:
+                        r, jac = r2, jac2
+                        break
                 theta0 = np.asarray(theta)
         theta, r = np.asarray(theta), np.asarray(r).ravel()
         jac = np.asarray(jac).reshape(r.size, -1)
