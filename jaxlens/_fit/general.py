@@ -149,6 +149,12 @@ def _model(p, scene, grid, otf, prob: _Problem):
     return _psf.convolve_psf(img, otf, pad=prob.pad).ravel()
 
 
+def _gaussian_rows(m, data, weight, clip):
+    """Gaussian residuals (noise units) of the model `m` (before clipping) under `clip`:
+    lo, hi, the noise of one original pixel and the residuals' scale."""
+    return weight * (clipped_mean(m, clip[0], clip[1], clip[2]) - data) / clip[3]
+
+
 def _residuals(theta, args, prob: _Problem):
     return _residuals_model(theta, args, prob)[0]
 
@@ -176,8 +182,7 @@ def _residuals_model(theta, args, prob: _Problem):
         r = (y - mu) / jnp.sqrt(mu) * jnp.sqrt(jnp.maximum(ratio, 0.0))
         r = jnp.where(weight > 0, r, 0.0)
     else:
-        m = clipped_mean(m, clip[0], clip[1], clip[2])
-        r = weight * (m - data) / clip[3]
+        r = _gaussian_rows(m, data, weight, clip)
     i = prob.names.index("ring_flux")
     prior = jnp.where(sel.free[i], (u[i] - 1.0) / _RING_FLUX_PRIOR, 0.0)
     return jnp.concatenate([r.ravel(), prior[None]]), m0
@@ -205,8 +210,7 @@ def _renoised(model, data, weight, old, new, r, jac):
     would still gain. The rows' derivatives of the model are the old rows' with the
     clipped slope and the noise scale changed (rows whose old slope is below 1e-6,
     clipped away, are dropped); the last residual, the ring-flux prior, is kept."""
-    m = clipped_mean(model, new[0], new[1], new[2])
-    rows = weight * (m - data) / new[3]
+    rows = _gaussian_rows(model, data, weight, new)
     slope_old = clipped_slope(model, old[0], old[1], old[2])
     slope_new = clipped_slope(model, new[0], new[1], new[2])
     factor = jnp.where(slope_old > 1e-6, slope_new / jnp.maximum(slope_old, 1e-6), 0.0)
