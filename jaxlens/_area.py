@@ -53,3 +53,27 @@ def edge_density(t, a, c):
     h1, h2, p, q = _trapezoid(a, c)
     at = jnp.abs(t)
     return jnp.where(at >= h1, 0.0, jnp.where(at > h2, (h1 - at) / (p * q), 1.0 / p))
+
+
+def _quadrant_in_disc(x, y, r):
+    """Area of the disc of radius `r` about the origin within the rectangle
+    $[0, x] \\times [0, y]$ ($x, y \\ge 0$; numpy, broadcasting)."""
+    r = np.maximum(r, 1e-300)
+    u0 = np.sqrt(np.maximum(r * r - y * y, 0.0))  # where the circle's height falls to y
+    a, b = np.minimum(u0, x), np.minimum(x, r)
+
+    def under_arc(u):  # integral of sqrt(r^2 - u^2) from 0 to u
+        return 0.5 * (u * np.sqrt(np.maximum(r * r - u * u, 0.0)) + r * r * np.arcsin(u / r))
+
+    return y * a + np.where(b > a, under_arc(b) - under_arc(a), 0.0)
+
+
+def rect_in_disc(x1, x2, y1, y2, r):
+    """Area (pixels^2) of the rectangle $[x_1, x_2] \\times [y_1, y_2]$ (pixels from
+    the centre, $x_1 \\le x_2$, $y_1 \\le y_2$) that lies within `r` of the centre:
+    exact (the signed quadrant areas, numpy, broadcasting)."""
+
+    def signed(x, y):
+        return np.sign(x) * np.sign(y) * _quadrant_in_disc(np.abs(x), np.abs(y), r)
+
+    return signed(x2, y2) - signed(x1, y2) - signed(x2, y1) + signed(x1, y1)

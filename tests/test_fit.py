@@ -116,6 +116,56 @@ def test_stored_ring_table_is_the_computed_one():
         np.testing.assert_allclose(s, c, rtol=2e-11, atol=0.0)
 
 
+def test_area_of_a_rectangle_within_a_disc():
+    # Closed forms (inside, around, a quadrant, a half) and a fine point count.
+    from jaxlens._area import rect_in_disc
+
+    assert rect_in_disc(-1.0, 2.0, -2.0, 1.0, 10.0) == pytest.approx(9.0, rel=1e-14)
+    assert rect_in_disc(-5.0, 5.0, -5.0, 5.0, 3.0) == pytest.approx(9 * math.pi, rel=1e-14)
+    assert rect_in_disc(0.0, 4.0, 0.0, 4.0, 4.0) == pytest.approx(4 * math.pi, rel=1e-14)
+    assert rect_in_disc(-9.0, 9.0, 0.0, 9.0, 2.0) == pytest.approx(2 * math.pi, rel=1e-14)
+    assert rect_in_disc(3.0, 4.0, 3.0, 4.0, 4.0) == 0.0
+    rng = np.random.default_rng(5)
+    u = (np.arange(1500) + 0.5) / 1500
+    for _ in range(5):
+        x1, y1 = rng.uniform(-8.0, 4.0, 2)
+        x2, y2 = x1 + rng.uniform(0.5, 8.0), y1 + rng.uniform(0.5, 8.0)
+        r = rng.uniform(1.0, 10.0)
+        xx, yy = np.meshgrid(x1 + (x2 - x1) * u, y1 + (y2 - y1) * u)
+        count = np.mean(np.hypot(xx, yy) < r) * (x2 - x1) * (y2 - y1)
+        assert rect_in_disc(x1, x2, y1, y2, r) == pytest.approx(count, abs=2e-3 * (x2 - x1))
+
+
+@pytest.mark.parametrize("d, focal, sigma", [(12.0, 250.0, 0.026), (3.0, 120.0, 0.01)])
+def test_start_search_model_is_the_area_exact_model(d, focal, sigma):
+    # The start search's radial model against the renderer's area-exact pixels (8 x 8
+    # rule, within 4e-5 of the peak on these bins; the radial grid's error is ~7e-5)
+    # and the exact shadow shares.
+    from jaxlens._area import rect_in_disc
+    from jaxlens._fit import starts
+    from jaxlens._fit.model import _pixel_basis, _pixel_edges
+    from jaxlens._fit.table import escape_table
+
+    with jax.enable_x64(True):
+        x0, y0 = _pixel_edges(400, 300, 8, np.float64)
+        table = escape_table(d, knots=1024)
+        radial = starts._radial_weights(400, 300, 8, 2.7)
+        g, cov = (np.asarray(v) for v in starts._radial_basis(table, focal, sigma, radial))
+        ref, _, _ = _pixel_basis(table, focal, sigma, jnp.asarray(x0), jnp.asarray(y0),
+                                 width=400, block=8, k=8, rings=False)  # fmt: skip
+        r_sh = focal * math.tan(float(table.alpha_sh))
+    ref = np.asarray(ref).ravel()
+    assert ref.max() > 0.5
+    np.testing.assert_allclose(g, ref, rtol=0, atol=1e-4 * ref.max())
+    x1, y2 = x0.ravel(), y0.ravel()
+    exact = 1.0 - rect_in_disc(x1, x1 + 8.0, y2 - 8.0, y2, r_sh) / 64.0
+    assert exact.min() == 0.0 and np.any((exact > 0.01) & (exact < 0.99))  # shadow edge
+    # Linear in radius between the exact shares: 2e-5, but 1e-3 where the edge is
+    # tangent to a bin's side (the share grows as (r - r_t)^1.5 there).
+    err = np.abs(cov - exact)
+    assert np.mean(err > 2e-5) < 0.02 and err.max() < 1e-3
+
+
 def test_einstein_ring_angle_gradient():
     # Implicit-function derivative against central differences (step 1e-4 D: the
     # truncation error ~1e-8 relative, the table's value noise ~1e-12 / 2e-3).

@@ -1,26 +1,10 @@
-"""The starting search's static setup and the optimistix Levenberg-Marquardt solve with
+"""The optimistix Levenberg-Marquardt solve with
 a dense Jacobian."""
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-
-
-class _Setup(eqx.Module):
-    """Static description of the starting search's model (`starts`): pixels of side
-    `block` (full-image pixels) with a k x k rule."""
-
-    half_width: float = eqx.field(static=True)  # W/2 of the full image, pixels
-    block: int = eqx.field(static=True)
-    k: int = eqx.field(static=True)
-    knots: int = eqx.field(static=True)
-
-    @property
-    def width(self) -> int:
-        """Width of the full image (pixels)."""
-        return round(2 * self.half_width)
-
 
 # The Gauss-Newton step left at a point, as the chi^2 it would still gain (its Newton
 # decrement), below which a fit has settled: 1e-4 is a step of 0.01 standard errors

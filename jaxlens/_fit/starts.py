@@ -11,11 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _programs
+from .._area import rect_in_disc
 from .._programs import Stored
 from .._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
-from .model import _pixel_basis
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
-from .solve import _Setup
 from .table import escape_table, solve_with_slope
 
 
@@ -47,6 +46,91 @@ def _ring_table():
     return tuple(np.asarray(v) for v in (t.DISTANCE, t.ALPHA_E, t.ALPHA_SH, t.SLOPE))
 
 
+class _Setup(eqx.Module):
+    """Static description of the start search's model: half the full image's width
+    (pixels) and the escape table's knots."""
+
+    half_width: float = eqx.field(static=True)
+    knots: int = eqx.field(static=True)
+
+
+# The start search's model is radial (a camera pointed at the hole, the star behind
+# it): its values are taken on a grid of radii, at least `_RADII` knots out to the
+# farthest bin corner and at least `_PER_WIDTH` to the ring's Gaussian width: on the
+# benchmark ring's 8-pixel bins the primary image's bin averages lie within 7e-5 of its
+# peak of the renderer's area-exact ones (the linear interpolation in radius), the
+# shadow's shares within 2e-5 of the exact ones (linear in radius too; 1e-3 where its
+# edge is tangent to a bin's side).
+_RADII = 4096
+_PER_WIDTH = 32
+
+
+@functools.lru_cache(maxsize=4)
+def _radial_weights(width: int, height: int, block: int, ring_width: float):
+    """How a radial profile on a grid of radii averages over square bins (host-side
+    numpy, once an image).
+
+    The bins: `block` x `block` pixels of a `width` x `height` image (`_pixel_edges`);
+    `ring_width`: the ring's radial Gaussian width (pixels), which sets the grid's
+    spacing $h$. Kept for the next call with the same arguments (the start search's
+    preload and its run).
+
+    **Returns:** `(rho, first, inside, weights)`: the radii $\rho_j = j h$ (pixels),
+    each bin's first radius index $j_0$ (the grid point at or below its nearest
+    point), the share of each bin within $\rho_{j_0 + l}$ (exact, `(bins, L)`; 0
+    at $l = 0$, 1 at $l = L - 1$), and the weights of a profile's values at those
+    radii in the bin's average (linear interpolation in $\rho$ across the exact area
+    between neighbouring radii; each row sums to 1).
+    """
+    from .model import _pixel_edges
+
+    x0, y0 = _pixel_edges(width, height, block, np.float64)
+    x1, y2 = np.ravel(x0), np.ravel(y0)
+    x2, y1 = x1 + block, y2 - block
+    far = np.hypot(np.maximum(abs(x1), abs(x2)), np.maximum(abs(y1), abs(y2)))
+    reach = float(np.max(far))
+    n = _RADII
+    while reach / n > ring_width / _PER_WIDTH and n < 8 * _RADII:
+        n *= 2
+    h = reach / n
+    first = np.floor(np.hypot(np.clip(0.0, x1, x2), np.clip(0.0, y1, y2)) / h).astype(np.int32)
+    # A bin spans at most its diagonal in radius; the span padded to a multiple of 16
+    # (fewer shapes, so fewer programs).
+    span = -(-(math.ceil(math.sqrt(2.0) * block / h) + 2) // 16) * 16
+    r = (first[:, None] + np.arange(span)) * h
+    col = (slice(None), None)
+    inside = rect_in_disc(x1[col], x2[col], y1[col], y2[col], r) / float(block) ** 2
+    inside = np.clip(inside, 0.0, 1.0)
+    da = np.diff(inside, axis=1)
+    weights = 0.5 * (np.pad(da, ((0, 0), (1, 0))) + np.pad(da, ((0, 0), (0, 1))))
+    rho = h * np.arange(int(first.max()) + span)
+    return tuple(to_device(v) for v in (rho, first, inside, weights))
+
+
+def _radial_basis(table, focal, sigma, radial):
+    """The start search's two basis images on the bins of `_radial_weights`: the
+    primary image of a star exactly behind the hole (unit peak brightness, Gaussian
+    width `sigma` radians; no relativistic rings) and the floor's coverage (the share
+    of each bin outside the shadow, exact), for a camera of focal length `focal`
+    (pixels) at the distance of `table` (its `escape_table`)."""
+    rho, first, inside, weights = radial
+    span = weights.shape[1]
+    alpha = jnp.arctan(rho / focal)
+    phi = table.escape_angle(jnp.maximum(alpha, table.alpha_sh))
+    star = jnp.exp(-0.5 * ((phi - jnp.pi) / sigma) ** 2)
+    # Order 0 only (Phi < 2 pi), none inside the shadow: as the renderer's primary image.
+    profile = jnp.where((alpha > table.alpha_sh) & (phi < 2.0 * jnp.pi), star, 0.0)
+    g = jnp.sum(weights * profile[first[:, None] + jnp.arange(span)], axis=1)
+    # The shadow's share of each bin, interpolated in the exact shares at the radii.
+    t = focal * jnp.tan(table.alpha_sh) / rho[1] - first
+    i = jnp.clip(jnp.floor(t), 0, span - 2).astype(first.dtype)[:, None]
+    u = jnp.clip(t - i[:, 0], 0.0, 1.0)
+    a0 = jnp.take_along_axis(inside, i, axis=1)[:, 0]
+    a1 = jnp.take_along_axis(inside, i + 1, axis=1)[:, 0]
+    shadow = jnp.where(t <= 0.0, 0.0, jnp.where(t >= span - 1, 1.0, a0 + u * (a1 - a0)))
+    return g, 1.0 - shadow
+
+
 _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each candidate
 # The candidates are first refined by one step each, and the best `_SHORTLIST` of those
 # by all `_PROFILE_STEPS`: half the model evaluations of refining all of them fully.
@@ -65,14 +149,15 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     into the shadow): the Gaussian in $|\Phi - \pi|$ is at half its peak where
     $|\Phi - \pi| = \sqrt{2 \ln 2}\,\sigma$.
 
-    `args`: the binned image's left and top edges, its values, their scale, the
-    clipping `(lo, hi, noise)` and 1.0 to fit sigma (0.0: sigma held at the
-    candidate's; an argument, so both kinds of fit share this program). `steps` (at
+    `args`: the binned image's radial grid and weights (`_radial_weights`), its
+    values, their scale, the clipping `(lo, hi, noise)` and 1.0 to fit sigma (0.0:
+    sigma held at the candidate's; an argument, so both kinds of fit share this
+    program). `steps` (at
     least 1) is an argument too (one program for the short and the full refinement).
 
     **Returns:** loss (after the last step), fov, sigma, A and floor of each candidate.
     """
-    x0, y0, data, scale, clip, fit_sigma = args
+    radial, data, scale, clip, fit_sigma = args
     y = (data / scale).ravel()
     lo, hi, noise = clip[0], clip[1], clip[2]
     hwhm = math.sqrt(2.0 * math.log(2.0))
@@ -90,21 +175,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
         q0 = jnp.stack([jnp.log(focal), jnp.log(sigma)])
 
         def basis(q):
-            s_ = jnp.exp(q[1])
-            # The primary ring only: the relativistic rings (~1e-3 of the flux) do not
-            # change which candidate is best, and leaving them out halves the compile.
-            g, t, cov = _pixel_basis(
-                table,
-                jnp.exp(q[0]),
-                s_,
-                x0,
-                y0,
-                width=setup.width,
-                block=setup.block,
-                k=setup.k,
-                rings=False,
-            )
-            g, cov = (g + t).ravel(), cov.ravel()
+            g, cov = _radial_basis(table, jnp.exp(q[0]), jnp.exp(q[1]), radial)
             return g, (g, cov)
 
         # A and floor by linear least squares at the first step, then Gauss-Newton on
@@ -305,21 +376,19 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     """The start search's model on the binned image: `(halves, args, setup, noise)` for
     `_candidate_losses` (`noise`: `(lo, hi, noise)`, the clipping bounds and the noise
     of one original pixel)."""
-    from .model import _pixel_edges, _samples_for
     from .pixels import _bin
 
     h, w = img.shape
     coarse = max(1, round(min(h, w) / 40))
     cimg = _bin(img, coarse)
-    k0 = _samples_for(prof.ring_width, coarse)  # sigma's step is an argument: one program
-    setup0 = _Setup(0.5 * w, coarse, k0, 1024)
-    x0c, y0c = _pixel_edges(w, h, coarse, jnp.float64)
+    setup0 = _Setup(0.5 * w, 1024)
+    radial = _radial_weights(w, h, coarse, prof.ring_width)
     # Stored values clipped at 0 (or 1) where the noise crossed them: the model is
     # then the expected clipped value, with the noise of one original pixel.
     lo, hi = _clipping(img)
     noise = _noise_clipped(img, prof, lo, hi)
     clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
-    args0 = (x0c, y0c, to_device(cimg), to_device(scale), clip0,
+    args0 = (radial, to_device(cimg), to_device(scale), clip0,
              to_device(float(star_sigma is None)))  # fmt: skip
     halves = to_device([prof.inner_half, prof.outer_half])
     return halves, args0, setup0, (lo, hi, noise)
