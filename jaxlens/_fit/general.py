@@ -507,7 +507,10 @@ def fit(
                         b += 1
                 pix = _grid_sets(gray, valid, int(b))
             b = pix.block
-            k = int(supersample) if supersample is not None else _samples_for(prof.ring_width, b)
+            # Under a PSF the image's ring is wider than the rendered one: order 2 is
+            # left to images without one.
+            k = (int(supersample) if supersample is not None
+                 else _samples_for(prof.ring_width, b, 2 if psf_kind is None else 3))  # fmt: skip
             yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
             cam = Camera(start["distance"], start["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
                          supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip

@@ -164,14 +164,15 @@ def _checked(value, name, ok, valid):
     return eqx.error_if(value, jnp.any(bad), f"{name} must be {valid}")
 
 
-def _samples_for(ring_width_px, block):
+def _samples_for(ring_width_px, block, lowest: int = 2):
     """Gauss-Legendre order $k$ for a ring of radial Gaussian width `ring_width_px`
-    (full pixels) in pixels of side `block`: of the orders 3, 4, 6 and 8 the smallest
-    whose error on a 1-D Gaussian is below ~4e-5 of its peak (3 for width/side >= 0.75,
-    4 >= 0.5, 6 >= 0.25, else 8; measured against the exact erf average; 5, enough
-    from 0.35, is left out so that fewer programs are compiled)."""
+    (full pixels) in pixels of side `block`: of the orders 2, 3, 4, 6 and 8 (none
+    below `lowest`) the smallest whose error on a 1-D Gaussian is below ~4e-5 of its
+    peak (2 for width/side >= 2.1, 3 >= 0.75, 4 >= 0.5, 6 >= 0.25, else 8; measured
+    against the exact erf average; 5, enough from 0.35, is left out so that fewer
+    programs are compiled)."""
     ratio = ring_width_px / block
-    for k, least in ((3, 0.75), (4, 0.5), (6, 0.25)):
-        if ratio >= least:
+    for k, least in ((2, 2.1), (3, 0.75), (4, 0.5), (6, 0.25)):
+        if k >= lowest and ratio >= least:
             return k
     return 8
