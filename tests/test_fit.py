@@ -166,6 +166,33 @@ def test_start_search_model_is_the_area_exact_model(d, focal, sigma):
     assert np.mean(err > 2e-5) < 0.02 and err.max() < 1e-3
 
 
+def test_gauss_legendre_order_meets_its_bound():
+    # The order the model takes for a ring of a given width (pixels) averages a Gaussian
+    # of that width over a pixel within 4e-5 of its peak (against the exact erf
+    # average, every offset of the ring from the pixel); the next lower order does not.
+    from jaxlens._area import rule
+    from jaxlens._fit.model import _samples_for
+
+    erf = np.vectorize(math.erf)
+
+    def worst(k, s):
+        node, weight, _ = rule(k)
+        c = np.linspace(-4.0 * s - 1.0, 4.0 * s + 1.0, 4001)[:, None]
+        exact = math.sqrt(0.5 * math.pi) * s * (erf((1.0 - c) / (math.sqrt(2.0) * s))
+                                                - erf(-c / (math.sqrt(2.0) * s)))  # fmt: skip
+        quad = np.sum(weight * np.exp(-0.5 * ((node - c) / s) ** 2), axis=1, keepdims=True)
+        return np.max(np.abs(quad - exact))
+
+    orders = [2, 3, 4, 6, 8]
+    for width in (2.1, 0.75, 0.5, 0.25):
+        k = _samples_for(width, 1)
+        assert worst(k, width) < 4e-5
+        if k > 2:
+            assert worst(orders[orders.index(k) - 1], width) > 4e-5
+        assert _samples_for(0.99 * width, 1) > k  # the smallest order that meets it
+    assert _samples_for(3.0, 1, lowest=3) == 3 and _samples_for(3.0, 2) == 3  # side 2 px
+
+
 def test_einstein_ring_angle_gradient():
     # Implicit-function derivative against central differences (step 1e-4 D: the
     # truncation error ~1e-8 relative, the table's value noise ~1e-12 / 2e-3).
