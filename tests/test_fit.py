@@ -149,8 +149,10 @@ def test_start_search_model_is_the_area_exact_model(d, focal, sigma):
     with jax.enable_x64(True):
         x0, y0 = _pixel_edges(400, 300, 8, np.float64)
         table = escape_table(d, knots=1024)
-        radial = starts._radial_weights(400, 300, 8, 2.7)
-        g, cov = (np.asarray(v) for v in starts._radial_basis(table, focal, sigma, radial))
+        radial, group, count = starts._radial_weights(400, 300, 8, 2.7)
+        assert len(count) == 475 and count.sum() == 1850  # one bin of each mirrored set
+        kept = starts._radial_basis(table, focal, sigma, radial)
+        g, cov = (np.asarray(v)[group] for v in kept)
         ref, _, _ = _pixel_basis(table, focal, sigma, jnp.asarray(x0), jnp.asarray(y0),
                                  width=400, block=8, k=8, rings=False)  # fmt: skip
         r_sh = focal * math.tan(float(table.alpha_sh))

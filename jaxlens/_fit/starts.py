@@ -72,23 +72,33 @@ def _radial_weights(width: int, height: int, block: int, ring_width: float):
 
     The bins: `block` x `block` pixels of a `width` x `height` image (`_pixel_edges`);
     `ring_width`: the ring's radial Gaussian width (pixels), which sets the grid's
-    spacing $h$. Kept for the next call with the same arguments (the start search's
-    preload and its run).
+    spacing $h$. Bins that are mirror images of each other about the centre's axes or
+    diagonals see the same radial profile: one of each set is kept (a quarter of the
+    bins of a centred grid, an eighth where the diagonals map bins onto bins). Kept
+    for the next call with the same arguments (the start search's preload and its
+    run).
 
-    **Returns:** `(rho, first, inside, weights)`: the radii $\rho_j = j h$ (pixels),
-    each bin's first radius index $j_0$ (the grid point at or below its nearest
-    point), the share of each bin within $\rho_{j_0 + l}$ (exact, `(bins, L)`; 0
-    at $l = 0$, 1 at $l = L - 1$), and the weights of a profile's values at those
-    radii in the bin's average (linear interpolation in $\rho$ across the exact area
-    between neighbouring radii; each row sums to 1).
+    **Returns:** `((rho, first, inside, weights), group, count)`: the radii
+    $\rho_j = j h$ (pixels); for each kept bin its first radius index $j_0$ (the grid
+    point at or below its nearest point), its share within $\rho_{j_0 + l}$ (exact,
+    `(kept, L)`; 0 at $l = 0$, 1 at $l = L - 1$) and the weights of a profile's values
+    at those radii in its average (linear interpolation in $\rho$ across the exact area
+    between neighbouring radii; each row sums to 1): device arrays. Then for each bin
+    (row-major) the kept bin it mirrors, and the number of bins each kept one stands
+    for (numpy).
     """
     from .model import _pixel_edges
 
     x0, y0 = _pixel_edges(width, height, block, np.float64)
-    x1, y2 = np.ravel(x0), np.ravel(y0)
+    # Twice the centres' distances from the axes, whole numbers: exact keys.
+    cx = np.rint(np.abs(2.0 * np.ravel(x0) + block)).astype(np.int64)
+    cy = np.rint(np.abs(2.0 * np.ravel(y0) - block)).astype(np.int64)
+    keys = np.stack([np.minimum(cx, cy), np.maximum(cx, cy)], axis=1)
+    kept, group, count = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    x1 = 0.5 * (kept[:, 0] - block)
+    y2 = 0.5 * (kept[:, 1] + block)
     x2, y1 = x1 + block, y2 - block
-    far = np.hypot(np.maximum(abs(x1), abs(x2)), np.maximum(abs(y1), abs(y2)))
-    reach = float(np.max(far))
+    reach = float(np.max(np.hypot(x2, y2)))
     n = _RADII
     while reach / n > ring_width / _PER_WIDTH and n < 8 * _RADII:
         n *= 2
@@ -104,11 +114,12 @@ def _radial_weights(width: int, height: int, block: int, ring_width: float):
     da = np.diff(inside, axis=1)
     weights = 0.5 * (np.pad(da, ((0, 0), (1, 0))) + np.pad(da, ((0, 0), (0, 1))))
     rho = h * np.arange(int(first.max()) + span)
-    return tuple(to_device(v) for v in (rho, first, inside, weights))
+    radial = tuple(to_device(v) for v in (rho, first, inside, weights))
+    return radial, np.ravel(group), count
 
 
 def _radial_basis(table, focal, sigma, radial):
-    """The start search's two basis images on the bins of `_radial_weights`: the
+    """The start search's two basis images on the kept bins of `_radial_weights`: the
     primary image of a star exactly behind the hole (unit peak brightness, Gaussian
     width `sigma` radians; no relativistic rings) and the floor's coverage (the share
     of each bin outside the shadow, exact), for a camera of focal length `focal`
@@ -149,16 +160,16 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     into the shadow): the Gaussian in $|\Phi - \pi|$ is at half its peak where
     $|\Phi - \pi| = \sqrt{2 \ln 2}\,\sigma$.
 
-    `args`: the binned image's radial grid and weights (`_radial_weights`), its
-    values, their scale, the clipping `(lo, hi, noise)` and 1.0 to fit sigma (0.0:
-    sigma held at the candidate's; an argument, so both kinds of fit share this
-    program). `steps` (at
-    least 1) is an argument too (one program for the short and the full refinement).
+    `args`: the radial grid and weights of the binned image's kept bins
+    (`_radial_weights`); for each kept bin the number of bins it stands for and the sum
+    of their values and of their squares (over the scale); the scale; the clipping
+    `(lo, hi, noise)`; 1.0 to fit sigma (0.0: sigma held at the candidate's; an
+    argument, so both kinds of fit share this program). `steps` (at least 1) is an
+    argument too (one program for the short and the full refinement).
 
     **Returns:** loss (after the last step), fov, sigma, A and floor of each candidate.
     """
-    radial, data, scale, clip, fit_sigma = args
-    y = (data / scale).ravel()
+    radial, (count, s1, s2), scale, clip, fit_sigma = args
     lo, hi, noise = clip[0], clip[1], clip[2]
     hwhm = math.sqrt(2.0 * math.log(2.0))
 
@@ -185,12 +196,14 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
         def step(i, carry):
             q, a, fl = carry
             jg, (g, cov) = jax.jacfwd(basis, has_aux=True)(q)
+            # Least squares over the bins, each kept bin standing for `count` of them
+            # (`s1`, `s2`: the sums of their values and of their squares).
             xm = jnp.stack([g, cov], axis=1)
-            mm = xm.T @ xm
-            a0, f0 = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), xm.T @ y)
+            mm = xm.T @ (count[:, None] * xm)
+            a0, f0 = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), xm.T @ s1)
             a, fl = jnp.where(i == 0, a0, a), jnp.where(i == 0, f0, fl)
             m = a * g + fl * cov
-            res = y - clipped_mean(m, lo, hi, noise)
+            res = s1 - count * clipped_mean(m, lo, hi, noise)  # summed over each set
             # sigma held: its column zero and a unit diagonal, so its step is 0 and the
             # others' are those of the system without it.
             held = jnp.asarray([0.0, 0.0, 0.0, 1.0], q.dtype) * (1.0 - fit_sigma)
@@ -199,7 +212,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
                 * jnp.concatenate([g[:, None], cov[:, None], a * jg], axis=1)
                 * (1.0 - held)
             )
-            mm = x.T @ x
+            mm = x.T @ (count[:, None] * x)
             delta = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)) + jnp.diag(held),
                                      x.T @ res)  # fmt: skip
             delta = jnp.nan_to_num(delta)
@@ -210,7 +223,8 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
         nan = jnp.asarray(jnp.nan, q0.dtype)
         q, a, fl = jax.lax.fori_loop(0, steps, step, (q0, nan, nan))
         g, (_, cov) = basis(q)
-        rss = jnp.sum((y - clipped_mean(a * g + fl * cov, lo, hi, noise)) ** 2)
+        c_ = clipped_mean(a * g + fl * cov, lo, hi, noise)
+        rss = jnp.sum(s2 - 2.0 * c_ * s1 + count * c_ * c_)
         f = jnp.exp(q[0])
         fov = 2.0 * jnp.arctan(setup.half_width / f)
         s_ = jnp.exp(q[1])
@@ -218,7 +232,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
         return loss, fov, s_, a * scale, fl * scale
 
     def skip(c):  # rows with D = NaN are placeholders: not evaluated
-        inf = jnp.asarray(jnp.inf, y.dtype)
+        inf = jnp.asarray(jnp.inf, s1.dtype)
         return inf, c[1], jnp.nan_to_num(c[2], nan=1.0), inf, inf
 
     return jax.lax.map(lambda c: jax.lax.cond(jnp.isfinite(c[0]), one, skip, c), cands)
@@ -382,13 +396,15 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     coarse = max(1, round(min(h, w) / 40))
     cimg = _bin(img, coarse)
     setup0 = _Setup(0.5 * w, 1024)
-    radial = _radial_weights(w, h, coarse, prof.ring_width)
+    radial, group, count = _radial_weights(w, h, coarse, prof.ring_width)
+    y = cimg.ravel() / scale
+    sums = (count, np.bincount(group, y), np.bincount(group, y * y))
     # Stored values clipped at 0 (or 1) where the noise crossed them: the model is
     # then the expected clipped value, with the noise of one original pixel.
     lo, hi = _clipping(img)
     noise = _noise_clipped(img, prof, lo, hi)
     clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
-    args0 = (radial, to_device(cimg), to_device(scale), clip0,
+    args0 = (radial, tuple(to_device(v, np.float64) for v in sums), to_device(scale), clip0,
              to_device(float(star_sigma is None)))  # fmt: skip
     halves = to_device([prof.inner_half, prof.outer_half])
     return halves, args0, setup0, (lo, hi, noise)
