@@ -567,9 +567,6 @@ def fit(
         # arcs put it: the model's programs then compile on a thread while the start is
         # searched (the solver's, the largest, after the loss).
         ahead = None
-        clipped = math.isfinite(lo) or math.isfinite(hi)
-        passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
-
         moves = found and bool({"yaw", "pitch"} & set(free))  # the arcs are found again
         centre = (arcs.x_c, arcs.y_c) if found and not moves else (0.0, 0.0)
         edge_seen = arcs.shadow_radius if found else math.nan
@@ -661,6 +658,8 @@ def fit(
                 cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
                 losses = [float(_loss(to_device(c), args, prob)) for c in cands]
                 theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
+        clipped = math.isfinite(lo) or math.isfinite(hi)
+        passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
         steps = 0  # over the passes
         if passes == 2:
             # The noise check's program compiles while the first pass runs (its shapes:
