@@ -199,9 +199,10 @@ class Stored:
         if key is None:
             return None
         with self._lock:
-            if key not in self._programs:
-                self._programs[key] = self._load(key, args, tree, static, leaves)
-            entry = self._programs[key]
+            # An entry a folder: a program kept in one is written to the next one set.
+            if (_FOLDER, key) not in self._programs:
+                self._programs[_FOLDER, key] = self._load(key, args, tree, static, leaves)
+            entry = self._programs[_FOLDER, key]
         return None if entry is None else (entry, leaves)
 
     def _load(self, key, args, tree, static, leaves):

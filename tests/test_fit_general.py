@@ -39,7 +39,7 @@ def _model():
     return jl.Scene(jl.Camera(20.0, 1.0, 8, 8), jl.GaussianStar(0.01) + jl.Uniform(0.0))
 
 
-def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys):
+def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys, monkeypatch):
     # D and FOV within 1 % (the issue's bar) and within 4 standard errors; the source
     # within 0.05 deg. Truth and model differ by their rules (k = 4 against the fit's
     # own k) and the scipy blur's sampling of the Gaussian, both far below the noise.
@@ -49,9 +49,15 @@ def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys):
     img[5:15, 60:75] = np.nan  # bad pixels, as a FITS or EXR file carries them
     path = tmp_path / "arcs.exr"
     jl.write_image(path, np.repeat(img[..., None], 3, axis=-1).astype(np.float32))
+    from jaxlens import _programs
     from jaxlens.cli import main
 
+    monkeypatch.setenv("JAXLENS_CACHE_DIR", "")  # no persistent cache from a test
+    kept = tmp_path / "programs"  # ... but the fit's programs kept, as the CLI does
+    monkeypatch.setattr(_programs, "_FOLDER", kept)
     assert main(["fit", str(path), "--psf-sigma-px", "1.5", "--json"]) == 0
+    # The solve, the start search, the scan's loss and the arcs' rays: all kept.
+    assert len(list(kept.glob("*.executable"))) == 4 and not list(kept.glob("*.refused"))
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("distance", "distance_err", "fov_deg", "fov_deg_err", "source_lon_deg",
                 "source_lat_deg", "source_lon_deg_err", "source_lat_deg_err", "sigma_deg",
@@ -140,6 +146,9 @@ def test_bad_input_is_refused():
         jl.fit(_model(), img, mask=np.zeros((4, 4), bool))
     with pytest.raises(ValueError, match="valid pixels"):
         jl.fit(_model(), np.full((16, 16), np.nan))
+    for bad in (-1.0, 0.0, math.nan, math.inf, [1.0, 2.0]):  # a Gaussian PSF's width
+        with pytest.raises(ValueError, match="PSF's width in pixels"):
+            jl.fit(_model(), img, psf=bad)
 
 
 @pytest.mark.benchmark  # ~60 s: 16 fits; the fit benchmark reports the pulls of its cases

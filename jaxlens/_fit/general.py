@@ -145,7 +145,9 @@ def _model(p, scene, grid, otf, prob: _Problem):
     x0, y0 = grid
     img = render(x0, y0, jnp.asarray(float(prob.block))).reshape(x0.shape)
     if prob.psf == "gaussian":
-        otf = _psf.gaussian_otf(img.shape, p["psf_sigma"] / prob.block)
+        # The width is positive by its transform: the OTF without the run-time check,
+        # whose host callback would keep the program out of the command line's cache.
+        otf = _psf._gaussian_otf(img.shape, p["psf_sigma"] / prob.block)
     return _psf.convolve_psf(img, otf, pad=prob.pad).ravel()
 
 
@@ -429,6 +431,9 @@ def fit(
     psf_kind = None
     if psf is not None:
         psf_kind = "image" if np.ndim(psf) == 2 else "gaussian"
+        if psf_kind == "gaussian" and not (np.ndim(psf) == 0 and 0 < float(psf) < math.inf):
+            raise ValueError(f"psf={psf!r} must be a Gaussian PSF's width in pixels (> 0, "
+                             "finite) or a PSF image (2-D)")  # fmt: skip
     if "psf_sigma" in free and psf_kind != "gaussian":
         raise ValueError("psf_sigma is fitted only for a Gaussian PSF: give psf=<width in px>")
     gray = np.where(valid, img, np.nanmedian(img[valid]))

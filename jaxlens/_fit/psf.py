@@ -89,6 +89,13 @@ def gaussian_otf(shape: tuple[int, int], sigma_px: ArrayLike) -> Float[Array, "H
         sigma = eqx.error_if(
             sigma, ~(jnp.isfinite(sigma) & (sigma >= 0)), "sigma_px must be finite and >= 0"
         )
+    return _gaussian_otf((h, w), sigma)
+
+
+def _gaussian_otf(shape: tuple[int, int], sigma) -> Array:
+    """`gaussian_otf` of a width `sigma` (a float array, pixels) known to be valid: no
+    checks (a traced one's is a host callback)."""
+    h, w = shape
     q2 = np.fft.fftfreq(h)[:, None] ** 2 + np.fft.rfftfreq(w)[None, :] ** 2
     return jnp.exp((-2.0 * math.pi**2) * jnp.asarray(q2, sigma.dtype) * (sigma * sigma))
 
