@@ -146,7 +146,7 @@ def test_bad_input_is_refused():
         jl.fit(_model(), img, mask=np.zeros((4, 4), bool))
     with pytest.raises(ValueError, match="valid pixels"):
         jl.fit(_model(), np.full((16, 16), np.nan))
-    for bad in (-1.0, 0.0, math.nan, math.inf, [1.0, 2.0]):  # a Gaussian PSF's width
+    for bad in (-1.0, 0.0, math.nan, math.inf, [1.0, 2.0], "wide"):  # a Gaussian's width
         with pytest.raises(ValueError, match="PSF's width in pixels"):
             jl.fit(_model(), img, psf=bad)
 

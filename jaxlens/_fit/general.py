@@ -431,9 +431,14 @@ def fit(
     psf_kind = None
     if psf is not None:
         psf_kind = "image" if np.ndim(psf) == 2 else "gaussian"
-        if psf_kind == "gaussian" and not (np.ndim(psf) == 0 and 0 < float(psf) < math.inf):
-            raise ValueError(f"psf={psf!r} must be a Gaussian PSF's width in pixels (> 0, "
-                             "finite) or a PSF image (2-D)")  # fmt: skip
+        if psf_kind == "gaussian":
+            try:
+                width = float(psf) if np.ndim(psf) == 0 else math.nan
+            except (TypeError, ValueError):
+                width = math.nan
+            if not 0 < width < math.inf:
+                raise ValueError(f"psf={psf!r} must be a Gaussian PSF's width in pixels "
+                                 "(> 0, finite) or a PSF image (2-D)")  # fmt: skip
     if "psf_sigma" in free and psf_kind != "gaussian":
         raise ValueError("psf_sigma is fitted only for a Gaussian PSF: give psf=<width in px>")
     gray = np.where(valid, img, np.nanmedian(img[valid]))
