@@ -1,5 +1,4 @@
-"""The optimistix Levenberg-Marquardt solve with
-a dense Jacobian."""
+"""The optimistix Levenberg-Marquardt solve with a dense Jacobian."""
 
 import equinox as eqx
 import jax
