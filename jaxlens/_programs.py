@@ -22,6 +22,7 @@ XLA's own cache loads its entries): the folder must be the user's own.
 
 import functools
 import hashlib
+import math
 import os
 import pathlib
 import pickle
@@ -55,8 +56,8 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
     programs instead of compiling them (a default render: ~1.5 s sooner; a ring fit:
     ~7 s).
 
-    Two stores in one folder: JAX's persistent compilation cache (every program), and
-    the executables of `render`, `trace` and `fit` in its `jaxlens-programs`, which a
+    Two stores in one folder: JAX's persistent compilation cache (the small programs),
+    and the executables of `render`, `trace` and `fit` in its `jaxlens-programs`, which a
     later process loads without tracing them (keyed by everything that decides them:
     jaxlens's code, the versions of JAX and jaxlib, the CPU, the shapes and settings;
     files of older versions are not removed, and the whole folder can be deleted at any
@@ -162,11 +163,25 @@ def _write(path: pathlib.Path, data: bytes) -> None:
         pass
 
 
-def _xla_cache_off():
-    """A context in which this thread's compiles bypass XLA's persistent cache."""
+def _not_written_to_xla_cache():
+    """A context in which this thread's compiles are not written to XLA's persistent
+    cache. (`jax_enable_compilation_cache` cannot say it for one thread: JAX decides on
+    a process's first compile whether it uses the cache, and keeps to that.)"""
     from jax._src import config
 
-    return config.enable_compilation_cache(False)
+    return config.persistent_cache_min_compile_time_secs(math.inf)
+
+
+_SERVED = threading.local()  # `count`: this thread's hits in XLA's persistent cache
+
+
+@functools.cache
+def _count_cache_hits() -> None:
+    def on_event(event, **_):
+        if event == "/jax/compilation_cache/cache_hits":
+            _SERVED.count = getattr(_SERVED, "count", 0) + 1
+
+    jax.monitoring.register_event_listener(on_event)
 
 
 class Stored:
@@ -230,6 +245,8 @@ class Stored:
                 if traced and traced[0] != out_tree:
                     raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
 
+            # Named apart from the function's own jit, whose entries XLA's cache keeps.
+            flat.__name__ = flat.__qualname__ = f"kept_{getattr(self._fn, '__name__', 'fn')}"
             options = getattr(self._fn, "options", lambda: None)()  # `filter_jit_cpu`'s
             entry["program"] = jax.jit(flat, compiler_options=options)
             entry["check"] = check
@@ -243,13 +260,18 @@ class Stored:
             if entry["compiled"] is None:
                 lowered = lower()
                 text = lowered.as_text()
-                # Not from XLA's persistent cache (the CLI sets one): an executable
-                # it serves serialises without its code, and the kept file then fails
-                # in the next process ("Function ... not found"). The file keeps it.
-                with _xla_cache_off():
+                # Past XLA's persistent cache (the CLI sets one): an executable it
+                # serves serialises without its code, and the kept file would then
+                # fail in the next process ("Function ... not found"). Not written
+                # there (the file keeps it), under a name of its own (no entry of
+                # another program matches it); one served all the same is not kept.
+                _count_cache_hits()
+                served = getattr(_SERVED, "count", 0)
+                with _not_written_to_xla_cache():
                     compiled = lowered.compile()
                 entry["check"]()
-                _keep(entry["path"], compiled, text)
+                if getattr(_SERVED, "count", 0) == served:
+                    _keep(entry["path"], compiled, text)
                 entry["compiled"] = compiled
         return entry["compiled"]
 

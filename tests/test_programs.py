@@ -29,6 +29,13 @@ def qr_sum(a):
 if "xla" in sys.argv:  # XLA's persistent cache in the same folder, as the CLI sets it
     jax.config.update("jax_compilation_cache_dir", sys.argv[1])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    # A program compiled before the kept one (the CLI compiles several): JAX decides
+    # on its first compile whether the process uses the cache at all.
+    jax.jit(lambda x: x + 1.0)(np.float32(1.0))
+if "written" in sys.argv:  # written to XLA's cache too, as earlier versions did
+    import contextlib
+
+    _programs._not_written_to_xla_cache = contextlib.nullcontext
 _programs.use_folder(sys.argv[1])
 f = _programs.Stored(qr_sum, lambda *_: jax.tree.structure(0))
 a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
@@ -75,17 +82,29 @@ def test_the_key_holds_xla_flags_and_jax_settings_from_the_environment(monkeypat
 
 
 def test_a_program_xla_cached_is_kept_whole(tmp_path):
-    # Kept programs gone, XLA's cache entry there (a new jaxlens version: new keys, the
-    # same program): the program compiled again is kept with its code. One that XLA's
-    # cache had served was kept without it, and the next process failed to run it
-    # ("Function ... not found").
+    # Kept programs gone (a new jaxlens version: new keys, the same program): the
+    # program compiled again is kept with its code. One that XLA's cache had served was
+    # kept without it, and the next process failed to run it ("Function ... not
+    # found"); kept programs are not written to XLA's cache, nor read from it.
     first, _ = _run(tmp_path, "xla")
+    assert {p.name.split("-")[0] for p in tmp_path.glob("*-cache")} == {"jit__lambda"}
     for path in (tmp_path / "jaxlens-programs").glob("*.executable"):
         path.unlink()
     again, traced = _run(tmp_path, "xla")
     assert traced and again == first
     loaded, traced = _run(tmp_path, "xla")
     assert not traced and loaded == first
+
+
+def test_a_program_served_by_xla_cache_is_not_kept(tmp_path):
+    # Served by XLA's cache all the same (an entry written by an older version, its
+    # kept file gone): the result is used and the executable is not kept.
+    first, _ = _run(tmp_path, "xla", "written")
+    (kept,) = (tmp_path / "jaxlens-programs").glob("*.executable")
+    kept.unlink()
+    for _ in range(2):
+        again, traced = _run(tmp_path, "xla")
+        assert traced and again == first and not kept.exists()
 
 
 # `jaxlens.keep_programs` in a script: the first process keeps `trace`'s programs, the
