@@ -15,7 +15,7 @@ SETTLED_CHI2 = 1e-4
 def newton_decrement(r, jac):
     """`r^T J (J^T J)^-1 J^T r`: the decrease of `sum(r^2)` the full Gauss-Newton step
     from residuals `r (N,)` with Jacobian `jac (N, p)` would bring (columns scaled to
-    unit norm, and a ridge of 1e-12 of the trace on `J^T J`, so that directions the
+    unit norm, and a ridge of 1e-14 of the trace on `J^T J`, so that directions the
     data do not fix, such as a held parameter's zero column, add nothing).
 
     The p x p system is solved by elimination written out over its few columns, not by
@@ -28,7 +28,7 @@ def newton_decrement(r, jac):
     g = jn.T @ r
     p = g.shape[0]
     a = jn.T @ jn
-    a = a + 1e-12 * jnp.maximum(jnp.trace(a), 1.0) * jnp.eye(p, dtype=a.dtype)
+    a = a + 1e-14 * jnp.maximum(jnp.trace(a), 1.0) * jnp.eye(p, dtype=a.dtype)
     x = g
     for k in range(p):  # Gauss-Jordan; `a` is symmetric positive definite: no pivots
         row, xk = a[k] / a[k, k], x[k] / a[k, k]
