@@ -10,14 +10,15 @@ digest of everything that decides it, and a later process loads and calls it: no
 tracing, no lowering, no lookup in XLA's cache.
 
 What decides a program, and so goes into its key: jaxlens's own source files, the
-versions of JAX and jaxlib, the backend and its devices (the CPU's instruction set:
-XLA compiles for the host's), `jax_enable_x64`, the function, and its arguments'
-structure, static values, shapes and dtypes. A call whose static values have no
-faithful text (an object shown by its address) is not stored, nor is one on more than
-one device or one with host callbacks; a stored file that cannot be read is made
-again. These programs compile past XLA's persistent cache (an executable it serves
-would be kept without its code), so each is stored once. A file is loaded as code (as
-XLA's own cache loads its entries): the folder must be the user's own.
+versions of JAX, jaxlib, equinox, lineax and optimistix, the backend and its devices
+(the CPU's instruction set: XLA compiles for the host's), `jax_enable_x64`, the
+function, and its arguments' structure, static values, shapes and dtypes. A call whose
+static values have no faithful text (an object shown by its address) is not stored,
+nor is one on more than one device or one with host callbacks; a stored file that
+cannot be read is made again. These programs compile past XLA's persistent cache (an
+executable it serves would be kept without its code), so each is stored once. A file
+is loaded as code (as XLA's own cache loads its entries): the folder must be the
+user's own.
 """
 
 import functools
@@ -59,7 +60,8 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
     Two stores in one folder: JAX's persistent compilation cache (the small programs),
     and the executables of `render`, `trace` and `fit` in its `jaxlens-programs`, which a
     later process loads without tracing them (keyed by everything that decides them:
-    jaxlens's code, the versions of JAX and jaxlib, the CPU, the shapes and settings;
+    jaxlens's code, the versions of JAX and of the libraries it traces, the CPU, the
+    shapes and settings;
     files of older versions are not removed, and the whole folder can be deleted at any
     time). The files are loaded as code, as XLA's own cache entries are: keep the
     folder your own. It applies to the whole process from the call on; call it before
@@ -107,9 +109,19 @@ def _cpu_flags() -> str:
         return platform.processor() or platform.machine()
 
 
+def _version(name: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
 @functools.cache
 def _code_digest() -> str:
-    """Digest of jaxlens's source files, the JAX versions, the backend and the host."""
+    """Digest of jaxlens's source files, the versions of JAX and of the libraries the
+    programs trace, the backend and the host."""
     import jaxlib
 
     h = hashlib.sha256()
@@ -119,6 +131,8 @@ def _code_digest() -> str:
         h.update(path.read_bytes())
     device = jax.devices()[0]
     h.update(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
+    # The libraries whose code the fit's programs trace (its solver, its QR).
+    h.update(repr([_version(name) for name in ("equinox", "lineax", "optimistix")]).encode())
     h.update(f"{device.device_kind} {device.client.platform_version}".encode())
     h.update(_cpu_flags().encode())
     # XLA's flags and JAX's settings from the environment change the compiled code.

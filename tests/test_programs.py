@@ -81,6 +81,25 @@ def test_the_key_holds_xla_flags_and_jax_settings_from_the_environment(monkeypat
         _programs._code_digest.cache_clear()
 
 
+def test_the_key_holds_the_versions_of_the_traced_libraries(monkeypatch):
+    # A new optimistix changes the fit's solver: its kept program must not be loaded.
+    def digest():
+        _programs._code_digest.cache_clear()
+        return _programs._code_digest()
+
+    try:
+        installed = digest()
+        real = _programs._version
+
+        def older_optimistix(name):
+            return "0.0.0" if name == "optimistix" else real(name)
+
+        monkeypatch.setattr(_programs, "_version", older_optimistix)
+        assert digest() != installed
+    finally:
+        _programs._code_digest.cache_clear()
+
+
 def test_a_program_xla_cached_is_kept_whole(tmp_path):
     # Kept programs gone (a new jaxlens version: new keys, the same program): the
     # program compiled again is kept with its code. One that XLA's cache had served was
