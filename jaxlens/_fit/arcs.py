@@ -583,6 +583,11 @@ def _score(p, x, y, v, flat_cost: float, sigma: float) -> float:
     return math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
 
 
+# Below this offset (pixels) the ring turned round is the same ring (its centre moved by
+# twice the offset): the turned fit is left out.
+_ROUND_MIN = 0.25
+
+
 def _best_way_round(p, d: _Data, full: _Data, lo, hi, tol: float):
     """The better fit, on the pixels `d`, from `p` and from `p` turned round: the same
     ridge with the primary and secondary swapped (centre moved by 2 b along psi, b
@@ -591,11 +596,13 @@ def _best_way_round(p, d: _Data, full: _Data, lo, hi, tol: float):
     `d`, where it would cost nothing.
 
     **Returns:** the parameters and their residual sum of squares on `full`."""
-    q = np.asarray(p, float).copy()
-    q[:2] += 2.0 * q[3:5]
-    q[3:5] *= -1.0
-    q[6] = _shape_raw(-1.0)
-    fits = [_lm(p, d, lo, hi, tol)[0], _lm(q, d, lo, hi, tol)[0]]
+    fits = [_lm(p, d, lo, hi, tol)[0]]
+    if math.hypot(p[3], p[4]) > _ROUND_MIN:
+        q = np.asarray(p, float).copy()
+        q[:2] += 2.0 * q[3:5]
+        q[3:5] *= -1.0
+        q[6] = _shape_raw(-1.0)
+        fits.append(_lm(q, d, lo, hi, tol)[0])
     costs = [float(np.sum((_model(v, full.xs, full.ys) - full.data) ** 2)) for v in fits]
     i = int(np.argmin(costs))
     return fits[i], costs[i]
