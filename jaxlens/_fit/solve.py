@@ -5,6 +5,8 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from .spd import solve_spd
+
 # The Gauss-Newton step left at a point, as the chi^2 it would still gain (its Newton
 # decrement), below which a fit has settled: 1e-4 is a step of 0.01 standard errors
 # (whitened), far below any error bar. Optimistix's own test (every residual and every
@@ -16,26 +18,15 @@ def newton_decrement(r, jac):
     """`r^T J (J^T J)^-1 J^T r`: the decrease of `sum(r^2)` the full Gauss-Newton step
     from residuals `r (N,)` with Jacobian `jac (N, p)` would bring (columns scaled to
     unit norm, and a ridge of 1e-14 of the trace on `J^T J`, so that directions the
-    data do not fix, such as a held parameter's zero column, add nothing).
-
-    The p x p system is solved by elimination written out over its few columns, not by
-    LAPACK: in the solver's loop, `eigh` of the accepted point's Jacobian gave one
-    executable different results from run to run (a ring fit: 11 of 15 runs in one
-    process agreed; the others ended at D = 1.5, 1e40, ...), a race of XLA's CPU
-    runtime around the call; written out, 55 of 55 agreed."""
+    data do not fix, such as a held parameter's zero column, add nothing). Solved by
+    `solve_spd`, not LAPACK: with `eigh` here the solver's loop raced (55 of 55 runs
+    agreed once it was written out)."""
     scale = jnp.sqrt(jnp.sum(jac * jac, axis=0))
     jn = jac / jnp.where(scale > 0, scale, 1.0)
     g = jn.T @ r
-    p = g.shape[0]
     a = jn.T @ jn
-    a = a + 1e-14 * jnp.maximum(jnp.trace(a), 1.0) * jnp.eye(p, dtype=a.dtype)
-    x = g
-    for k in range(p):  # Gauss-Jordan; `a` is symmetric positive definite: no pivots
-        row, xk = a[k] / a[k, k], x[k] / a[k, k]
-        col = a[:, k].at[k].set(0.0)
-        a = (a - col[:, None] * row[None, :]).at[k].set(row)
-        x = (x - col * xk).at[k].set(xk)
-    return g @ x
+    a = a + 1e-14 * jnp.maximum(jnp.trace(a), 1.0) * jnp.eye(g.shape[0], dtype=a.dtype)
+    return g @ solve_spd(a, g)
 
 
 class _SettledState(eqx.Module):

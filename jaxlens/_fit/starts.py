@@ -15,6 +15,7 @@ from .._area import rect_in_disc
 from .._programs import Stored
 from .._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
+from .spd import solve_spd
 from .table import escape_table, solve_with_slope
 
 
@@ -200,7 +201,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
             # (`s1`, `s2`: the sums of their values and of their squares).
             xm = jnp.stack([g, cov], axis=1)
             mm = xm.T @ (count[:, None] * xm)
-            a0, f0 = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)), xm.T @ s1)
+            a0, f0 = solve_spd(mm + 1e-10 * jnp.diag(jnp.diag(mm)), xm.T @ s1)
             a, fl = jnp.where(i == 0, a0, a), jnp.where(i == 0, f0, fl)
             m = a * g + fl * cov
             res = s1 - count * clipped_mean(m, lo, hi, noise)  # summed over each set
@@ -213,8 +214,7 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
                 * (1.0 - held)
             )
             mm = x.T @ (count[:, None] * x)
-            delta = jnp.linalg.solve(mm + 1e-10 * jnp.diag(jnp.diag(mm)) + jnp.diag(held),
-                                     x.T @ res)  # fmt: skip
+            delta = solve_spd(mm + 1e-10 * jnp.diag(jnp.diag(mm)) + jnp.diag(held), x.T @ res)
             delta = jnp.nan_to_num(delta)
             limit = jnp.asarray([0.05, 0.3], q.dtype)
             q = q + jnp.clip(delta[2:], -limit, limit)
