@@ -213,6 +213,7 @@ class Stored:
         self._name = f"{fn.__module__}.{getattr(fn, '__qualname__', repr(fn))}"
         self._programs = {}
         self._lock = threading.Lock()  # one entry a key, whichever thread comes first
+        self._loading = {}  # the keys `preload_last` is loading: their events
 
     def _entry(self, args):
         """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
@@ -227,6 +228,10 @@ class Stored:
         key = _key(self._name, tree, static, leaves)
         if key is None:
             return None
+        with self._lock:
+            loading = self._loading.get((_FOLDER, key))
+        if loading is not None:  # `preload_last` is loading it: no second load
+            loading.wait()
         with self._lock:
             # An entry a folder: a program kept in one is written to the next one set.
             if (_FOLDER, key) not in self._programs:
@@ -322,6 +327,66 @@ class Stored:
                     self._entry(args)
                 except Exception:  # noqa: BLE001, S110 - the call itself reports it
                     pass
+
+        thread = threading.Thread(target=load, name="jaxlens-preload", daemon=True)
+        thread.start()
+        return thread
+
+    def _hint_path(self, hint: str) -> pathlib.Path:
+        digest = hashlib.sha256(f"{self._name}\0{hint}".encode()).hexdigest()[:32]
+        return _FOLDER / "last" / digest
+
+    def note(self, hint: str, *args) -> None:
+        """Note under `hint` (any text that a caller knows before it has the arguments)
+        the key of a call with `args`, for `preload_last` in a later process."""
+        if not keeping() or jax.device_count() != 1:
+            return
+        dyn, static = eqx.partition(args, eqx.is_array)
+        leaves, tree = jax.tree.flatten(dyn)
+        key = _key(self._name, tree, static, leaves)
+        path = self._hint_path(hint)
+        text = f"{key} {len(leaves)}"
+        try:
+            if key is None or path.read_text() == text:
+                return
+        except OSError:
+            pass
+        _write(path, text.encode())
+
+    def preload_last(self, hint: str) -> threading.Thread | None:
+        """Load on a background thread (returned) the kept executable of the call last
+        noted under `hint` (`note`), before the arguments of the next call are known:
+        a call with the same key then finds it loaded, and one with another key does
+        not wait for it. For a function whose result's structure does not depend on
+        its arguments. Nothing where no folder is set or no call was noted."""
+        if not keeping():
+            return None
+        folder = _FOLDER
+        try:
+            key, n_in = self._hint_path(hint).read_text().split()
+            n_in = int(n_in)
+        except (OSError, ValueError):
+            return None
+        with self._lock:
+            if (folder, key) in self._programs or (folder, key) in self._loading:
+                return None
+            done = self._loading[folder, key] = threading.Event()
+
+        def load():
+            try:
+                out_tree = self._structure()
+                path = folder / f"{key}{_SUFFIX}"
+                compiled = _read(path, n_in, out_tree.num_leaves)
+                entry = {"out_tree": out_tree, "path": path, "compiled": compiled,
+                         "program": None, "lock": threading.Lock()}  # fmt: skip
+                with self._lock:
+                    self._programs.setdefault((folder, key), entry)
+            except Exception:  # noqa: BLE001, S110 - missing or stale: the call compiles
+                pass
+            finally:
+                with self._lock:
+                    del self._loading[folder, key]
+                done.set()
 
         thread = threading.Thread(target=load, name="jaxlens-preload", daemon=True)
         thread.start()

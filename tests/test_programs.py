@@ -42,7 +42,16 @@ a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
 if "preload" in sys.argv:  # loaded on a thread before the call: the call finds it
     f.preload(a).join()
     assert all(e["compiled"] is not None for e in f._programs.values()), "not loaded"
-print(float(f(a)), bool(traced))
+if "last" in sys.argv:  # the call noted before, loaded before its arguments are known
+    thread = f.preload_last("4 x 4")
+    if thread is not None:
+        thread.join()
+    print(len(f._programs), end=" ")
+    if "other" in sys.argv:  # a call of another kind: compiled, not waiting for it
+        a = np.ones((3, 3), np.float32)
+out = float(f(a))
+f.note("4 x 4", a)
+print(out, bool(traced))
 """
 
 
@@ -50,8 +59,8 @@ def _run(folder, *more):
     done = subprocess.run([sys.executable, "-c", _CHILD, str(folder), *more],
                           capture_output=True, text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
-    value, traced = done.stdout.split()
-    return float(value), traced == "True"
+    *loaded, value, traced = done.stdout.split()
+    return (*map(int, loaded), float(value), traced == "True")
 
 
 def test_a_kept_program_with_lapack_calls_runs_in_a_fresh_process(tmp_path):
@@ -190,3 +199,15 @@ def test_a_preloaded_program_is_loaded_before_its_call(tmp_path):
     first, _ = _run(tmp_path)
     again, traced = _run(tmp_path, "preload")
     assert not traced and again == first
+
+
+def test_the_last_call_noted_is_loaded_before_its_arguments_are_known(tmp_path):
+    # Nothing noted yet: nothing loaded; the call compiles and notes its key.
+    none, first, traced = _run(tmp_path, "last")
+    assert none == 0 and traced
+    # Noted: loaded ahead (one entry before the call), and the call finds it.
+    one, again, traced = _run(tmp_path, "last")
+    assert one == 1 and not traced and again == first
+    # A call of another kind: the noted program loaded in vain, the call compiled.
+    one, other, traced = _run(tmp_path, "last", "other")
+    assert one == 1 and traced and other != first

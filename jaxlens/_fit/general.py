@@ -462,8 +462,12 @@ def fit(
                              "no ring to fit")  # fmt: skip
         prof = _starts._profile(gray)
         scale = max(prof.peak + prof.floor, 1e-12)
-        # Loaded while the arcs are sought (a kept program: 0.3-0.4 s of a warm fit).
+        # Loaded while the arcs are sought (a kept program: 0.3-0.4 s of a warm fit),
+        # and the solver's program of the last fit of this kind (0.5 s) likewise.
         _starts.preload_search(gray, prof, scale)
+        hint = repr((img.shape, free, psf_kind, kind, sigma_known, supersample, block,
+                     max_pixels, knots, rtol, atol, max_steps))  # fmt: skip
+        _solve.preload_last(hint)
         masked = np.where(valid, img, np.nan)
         # The hole's image and the source: the arcs' centre, azimuth and radii.
         arcs = find_arcs(masked)
@@ -687,6 +691,7 @@ def fit(
         for i in range(passes):
             theta, r, jac, model, result, taken = _solve(to_device(theta0), args,
                                                           *solve_args[1:])  # fmt: skip
+            _solve.note(hint, theta, args, *solve_args[1:])
             steps += int(taken)
             if i == 0 and passes == 2:
                 # The clipped model's noise, re-estimated from the residuals well inside
