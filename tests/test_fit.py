@@ -300,11 +300,25 @@ def test_second_pass_check_rescales_residuals_and_jacobian():
         r_old, j_old = rows(old)
         r_new, j_new = rows(new)
         r2, j2, dec = _renoised(model, data, weight, jnp.asarray(old), jnp.asarray(new),
-                                np.append(r_old, prior_r), np.vstack([j_old, prior_j]))  # fmt: skip
+                                np.append(r_old, prior_r), np.vstack([j_old, prior_j]),
+                                np.zeros(3))  # fmt: skip
         np.testing.assert_allclose(np.asarray(r2), np.append(r_new, prior_r), rtol=1e-12)
         np.testing.assert_allclose(np.asarray(j2), np.vstack([j_new, prior_j]), rtol=1e-10)
         assert float(dec) == pytest.approx(float(newton_decrement(r2, j2)), rel=1e-12)
         assert float(dec) > 0.0
+        # Where the solve settled with a last step, the decrement is that of the moved
+        # point (its residuals to first order); the step to the optimum leaves none.
+        moved = np.asarray([0.01, -0.02, 0.005])
+        *_, dec_moved = _renoised(model, data, weight, jnp.asarray(old), jnp.asarray(new),
+                                  np.append(r_old, prior_r), np.vstack([j_old, prior_j]),
+                                  moved)  # fmt: skip
+        expect = newton_decrement(r2 + j2 @ moved, j2)
+        assert float(dec_moved) == pytest.approx(float(expect), rel=1e-12)
+        step = np.linalg.lstsq(np.asarray(j2), -np.asarray(r2), rcond=None)[0]
+        *_, dec_opt = _renoised(model, data, weight, jnp.asarray(old), jnp.asarray(new),
+                                np.append(r_old, prior_r), np.vstack([j_old, prior_j]),
+                                step)  # fmt: skip
+        assert float(dec_opt) < 1e-12 * float(dec)
 
 
 # ------------------------------------------------------------------ forward model

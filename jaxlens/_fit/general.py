@@ -204,12 +204,13 @@ def _loss(theta, args, prob: _Problem):
 
 
 @jax.jit
-def _renoised(model, data, weight, old, new, r, jac):
+def _renoised(model, data, weight, old, new, r, jac, moved):
     """The residuals and Jacobian of a Gaussian fit's point (model `model` before
     clipping, residuals `r` and Jacobian `jac` under the clipping and noise `old`)
     under the noise `new` (`clip` of `_residuals_model`: lo, hi, noise, scale), and
-    the Newton decrement there (`newton_decrement`): what a pass with the new noise
-    would still gain. The rows' derivatives of the model are the old rows' with the
+    the Newton decrement under it at the point moved by `moved` (the solve's settling
+    step; the residuals there to first order): what a pass with the new noise would
+    still gain. The rows' derivatives of the model are the old rows' with the
     clipped slope and the noise scale changed (rows whose old slope is below 1e-6,
     clipped away, are dropped); the last residual, the ring-flux prior, is kept."""
     rows = _gaussian_rows(model, data, weight, new)
@@ -219,11 +220,11 @@ def _renoised(model, data, weight, old, new, r, jac):
     factor = factor * old[3] / new[3]
     r = jnp.concatenate([rows.ravel(), r[-1:]])
     jac = jac * jnp.concatenate([factor.ravel(), jnp.ones(1, jac.dtype)])[:, None]
-    return r, jac, newton_decrement(r, jac)
+    return r, jac, newton_decrement(r + jac @ moved, jac)
 
 
 # Kept between processes where the CLI keeps its cache; the results' structures.
-_solve = Stored(_solve, lambda *_: jax.tree.structure((0, 0, 0, 0, optx.RESULTS.successful, 0)))
+_solve = Stored(_solve, lambda *_: jax.tree.structure((0, 0, 0, 0, optx.RESULTS.successful, 0, 0)))
 _loss = Stored(_loss, lambda *_: jax.tree.structure(0))
 _renoised = Stored(_renoised, lambda *_: jax.tree.structure((0, 0, 0)))
 
@@ -686,11 +687,12 @@ def fit(
             # the model's and the data's, the residuals one longer).
             shape = args[3].shape
             n = math.prod(shape) + 1
-            model, r, jac = (to_device(np.zeros(v)) for v in (shape, n, (n, len(theta0))))
-            compile_ahead(_renoised, model, *args[3:6], args[5], r, jac)
+            model, r, jac, moved = (to_device(np.zeros(v))
+                                    for v in (shape, n, (n, len(theta0)), len(theta0)))  # fmt: skip
+            compile_ahead(_renoised, model, *args[3:6], args[5], r, jac, moved)
         for i in range(passes):
-            theta, r, jac, model, result, taken = _solve(to_device(theta0), args,
-                                                          *solve_args[1:])  # fmt: skip
+            theta, r, jac, model, result, taken, moved = _solve(to_device(theta0), args,
+                                                                 *solve_args[1:])  # fmt: skip
             _solve.note(hint, theta, args, *solve_args[1:])
             steps += int(taken)
             if i == 0 and passes == 2:
@@ -709,7 +711,8 @@ def fit(
                     # A second pass only where the new noise moves the optimum (see
                     # `_RENOISED_CHI2`); otherwise the first pass's point stands, with
                     # the residuals and Jacobian of the new noise.
-                    r2, jac2, dec = _renoised(model, args[3], args[4], args[5], clip, r, jac)
+                    r2, jac2, dec = _renoised(model, args[3], args[4], args[5], clip, r, jac,
+                                              moved)  # fmt: skip
                     args = args[:5] + (clip,) + args[6:]
                     if float(dec) < _RENOISED_CHI2:
                         r, jac = r2, jac2
@@ -717,6 +720,9 @@ def fit(
                 theta0 = np.asarray(theta)
         theta, r = np.asarray(theta), np.asarray(r).ravel()
         jac = np.asarray(jac).reshape(r.size, -1)
+        # The residuals at theta, to first order from the point the solve evaluated last
+        # (one settling step before it; its Jacobian stands for theta's).
+        r = r + jac @ np.asarray(moved)
         model = np.asarray(model)
         phys = {n: float(parameter(n).transform.forward(theta[i])) for i, n in enumerate(free)}
         fitted = apply(model_scene, {n: v for n, v in phys.items() if in_scene(n)})
