@@ -279,8 +279,14 @@ def _structure(cls, d, settings: dict):
 # The closed form on a few thousand knots, once a distance: compiled without LLVM's
 # optimisations (the table's errors unchanged) it compiles in 0.16 s instead of 0.37 s
 # and runs in 1.2 ms instead of 0.5 ms (float32, 1e-6 rad, both sides; float64 at
-# 1e-10 rad, 22,000 knots: 26 ms instead of 15 ms).
-BUILD_OPTIONS = {**OLDER_CPU_FUSION, "xla_backend_optimization_level": 0}
+# 1e-10 rad, 22,000 knots: 26 ms instead of 15 ms). Its code is generated in one piece:
+# it compiles beside another program (a render's block, `trace`'s look-up) and leaves
+# that one the other core.
+BUILD_OPTIONS = {
+    **OLDER_CPU_FUSION,
+    "xla_backend_optimization_level": 0,
+    "xla_cpu_parallel_codegen_split_count": 1,
+}
 
 
 @functools.partial(filter_jit_cpu, options=BUILD_OPTIONS)
