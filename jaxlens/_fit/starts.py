@@ -149,7 +149,14 @@ _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each cand
 _SHORTLIST = 8
 
 
-@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+# Its code generated in one piece: on a cold fit it compiles beside the solver's program
+# (the longer, which the fit then waits for), and leaves that one the other core (cold
+# fits of the benchmark ring 9.5 s against 9.9 s, means of 4 alternating pairs; it
+# runs as fast).
+_SEARCH_OPTIONS = {**OLDER_CPU_FUSION, "xla_cpu_parallel_codegen_split_count": 1}
+
+
+@functools.partial(filter_jit_cpu, options=_SEARCH_OPTIONS)
 def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     r"""Profile loss of each candidate distance.
 
