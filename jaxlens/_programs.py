@@ -54,18 +54,17 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
     """Keep this process's compiled programs in a folder, for later processes, as the
     command line does: the next notebook kernel or script that renders a scene,
     traces a batch of rays or fits an image of the same kind and size loads the
-    programs instead of compiling them (a default render: ~1.5 s sooner; a ring fit:
-    ~7 s).
+    programs instead of compiling them (a default render: ~1.2 s sooner; a ring fit:
+    ~6 s).
 
     Two stores in one folder: JAX's persistent compilation cache (the small programs),
     and the executables of `render`, `trace` and `fit` in its `jaxlens-programs`, which a
     later process loads without tracing them (keyed by everything that decides them:
     jaxlens's code, the versions of JAX and of the libraries it traces, the CPU, the
-    shapes and settings;
-    files of older versions are not removed, and the whole folder can be deleted at any
-    time). The files are loaded as code, as XLA's own cache entries are: keep the
-    folder your own. It applies to the whole process from the call on; call it before
-    the first render, trace or fit.
+    shapes and settings; files of older versions are not removed, and the whole folder
+    can be deleted at any time). The files are loaded as code, as XLA's own cache
+    entries are: keep the folder your own. It applies to the whole process from the
+    call on; call it before the first render, trace or fit.
 
     **Arguments:** `folder`: where to keep them; `None`: `$JAXLENS_CACHE_DIR`, else
     JAX's `$JAX_COMPILATION_CACHE_DIR`, else JAX's `jax_compilation_cache_dir` where

@@ -25,8 +25,7 @@ def gauss_newton(r, jac):
     decrease of `sum(r^2)` it would bring. Columns scaled to unit norm, and a ridge of
     1e-14 of the trace on `J^T J`, so that directions the data do not fix, such as a
     held parameter's zero column, neither move nor add. Solved by `solve_spd`, not
-    LAPACK: with `eigh` here the solver's loop raced (55 of 55 runs agreed once it was
-    written out)."""
+    LAPACK (why: see there)."""
     scale = jnp.sqrt(jnp.sum(jac * jac, axis=0))
     scale = jnp.where(scale > 0, scale, 1.0)
     jn = jac / scale
