@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 from . import _exact
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
-from ._util import OLDER_CPU_FUSION, filter_jit_cpu, fusion_barrier, is_concrete, tracing
+from ._util import SIDE_PROGRAM, filter_jit_cpu, fusion_barrier, is_concrete, tracing
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -282,11 +282,7 @@ def _structure(cls, d, settings: dict):
 # 1e-10 rad, 22,000 knots: 26 ms instead of 15 ms). Its code is generated in one piece:
 # it compiles beside another program (a render's block, `trace`'s look-up) and leaves
 # that one the other core.
-BUILD_OPTIONS = {
-    **OLDER_CPU_FUSION,
-    "xla_backend_optimization_level": 0,
-    "xla_cpu_parallel_codegen_split_count": 1,
-}
+BUILD_OPTIONS = {**SIDE_PROGRAM, "xla_backend_optimization_level": 0}
 
 
 @functools.partial(filter_jit_cpu, options=BUILD_OPTIONS)

@@ -17,7 +17,7 @@ from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
-from ._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, to_device, tracing
+from ._util import OLDER_CPU_FUSION, SIDE_PROGRAM, compile_ahead, filter_jit_cpu, to_device, tracing
 
 
 class TraceResult(eqx.Module):
@@ -258,14 +258,10 @@ def _compiled(method, alpha, distance, max_windings):
 _compiled = Stored(_compiled, lambda *_: jax.tree.structure(TraceResult(0, 0, 0)))
 
 
-# The look-up compiles on a thread while the table's program is traced on the main one:
-# LLVM's code generation in one piece (not split over the cores) leaves that trace a
-# core (0.12 s instead of 0.21 s; the look-up compiles in the same 0.22 s and runs as
-# fast), and a first `trace` of 100,000 rays took 1.76 s instead of 1.85 s.
-LOOKUP_OPTIONS = {**OLDER_CPU_FUSION, "xla_cpu_parallel_codegen_split_count": 1}
-
-
-@functools.partial(filter_jit_cpu, options=LOOKUP_OPTIONS)
+# Compiled on a thread while the table's program is traced on the main one, which then
+# keeps a core (its trace 0.12 s instead of 0.21 s; the look-up compiles in the same
+# 0.22 s).
+@functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
 def _through_map(ray_map, alpha):
     return ray_map(alpha)
 

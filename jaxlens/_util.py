@@ -113,6 +113,15 @@ class _Static:
 # render's block, by contrast, runs twice as long with it, so it keeps the default.
 OLDER_CPU_FUSION = {"xla_cpu_use_fusion_emitters": False}
 
+# `OLDER_CPU_FUSION` with the code generated in one piece, not split over the cores: for
+# a program that compiles beside another (on a second thread, or on the main one while
+# the other compiles or runs), which then keeps the other core. Measured: `trace`'s
+# look-up beside the table's build (first trace 1.76 s instead of 1.85 s), the fit's
+# start search beside its solver (cold fit 9.5 s instead of 9.9 s) and the noise
+# check beside the first pass (that solve 1.0-1.1 s instead of 1.3-1.4 s); each runs as
+# fast.
+SIDE_PROGRAM = {**OLDER_CPU_FUSION, "xla_cpu_parallel_codegen_split_count": 1}
+
 
 class filter_jit_cpu:
     """`eqx.filter_jit` (arrays traced, every other argument static) of a function whose

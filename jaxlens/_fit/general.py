@@ -17,7 +17,7 @@ from .._camera import Camera
 from .._exact import _shadow_angle
 from .._programs import Stored
 from .._scene import Scene
-from .._util import OLDER_CPU_FUSION, compile_ahead, filter_jit_cpu, to_device
+from .._util import OLDER_CPU_FUSION, SIDE_PROGRAM, compile_ahead, filter_jit_cpu, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
@@ -203,7 +203,8 @@ def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
 
-@jax.jit
+# Compiled ahead while the first pass runs.
+@functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
 def _renoised(model, data, weight, old, new, r, jac, moved):
     """The residuals and Jacobian of a Gaussian fit's point (model `model` before
     clipping, residuals `r` and Jacobian `jac` under the clipping and noise `old`)

@@ -13,7 +13,7 @@ import numpy as np
 from .. import _programs
 from .._area import rect_in_disc
 from .._programs import Stored
-from .._util import OLDER_CPU_FUSION, filter_jit_cpu, to_device
+from .._util import SIDE_PROGRAM, filter_jit_cpu, to_device
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
 from .spd import solve_spd
 from .table import escape_table, solve_with_slope
@@ -149,14 +149,8 @@ _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each cand
 _SHORTLIST = 8
 
 
-# Its code generated in one piece: on a cold fit it compiles beside the solver's program
-# (the longer, which the fit then waits for), and leaves that one the other core (cold
-# fits of the benchmark ring 9.5 s against 9.9 s, means of 4 alternating pairs; it
-# runs as fast).
-_SEARCH_OPTIONS = {**OLDER_CPU_FUSION, "xla_cpu_parallel_codegen_split_count": 1}
-
-
-@functools.partial(filter_jit_cpu, options=_SEARCH_OPTIONS)
+# On a cold fit it compiles beside the solver's program, which the fit waits for.
+@functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
 def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     r"""Profile loss of each candidate distance.
 
