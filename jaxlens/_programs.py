@@ -220,8 +220,7 @@ class Stored:
         function on the flat leaves), the result's structure and the file."""
         if not keeping() or jax.device_count() != 1:
             return None
-        dyn, static = eqx.partition(args, eqx.is_array)
-        leaves, tree = jax.tree.flatten(dyn)
+        tree, static, leaves = _split(args)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return None  # part of a caller's trace
         key = _key(self._name, tree, static, leaves)
@@ -242,13 +241,11 @@ class Stored:
         """The entry of a call: its kept executable, or the program to compile (`None`
         where it cannot be kept: the function is then called as it is)."""
         out_tree = self._structure(*args)
-        path = _FOLDER / f"{key}{_SUFFIX}"
-        if path.with_suffix(".refused").exists():
+        entry = _new_entry(_FOLDER, key, out_tree)
+        if entry["path"].with_suffix(".refused").exists():
             return None
-        entry = {"out_tree": out_tree, "path": path, "compiled": None, "program": None,
-                 "lock": threading.Lock()}  # fmt: skip
         try:
-            entry["compiled"] = _read(path, len(leaves), out_tree.num_leaves)
+            entry["compiled"] = _read(entry["path"], len(leaves), out_tree.num_leaves)
         except Exception:  # noqa: BLE001 - missing, partial or from another version
             pass
         if entry["compiled"] is None:
@@ -340,8 +337,7 @@ class Stored:
         the key of a call with `args`, for `preload_last` in a later process."""
         if not keeping() or jax.device_count() != 1:
             return
-        dyn, static = eqx.partition(args, eqx.is_array)
-        leaves, tree = jax.tree.flatten(dyn)
+        tree, static, leaves = _split(args)
         key = _key(self._name, tree, static, leaves)
         path = self._hint_path(hint)
         text = f"{key} {len(leaves)}"
@@ -373,11 +369,8 @@ class Stored:
 
         def load():
             try:
-                out_tree = self._structure()
-                path = folder / f"{key}{_SUFFIX}"
-                compiled = _read(path, n_in, out_tree.num_leaves)
-                entry = {"out_tree": out_tree, "path": path, "compiled": compiled,
-                         "program": None, "lock": threading.Lock()}  # fmt: skip
+                entry = _new_entry(folder, key, self._structure())
+                entry["compiled"] = _read(entry["path"], n_in, entry["out_tree"].num_leaves)
                 with self._lock:
                     self._programs.setdefault((folder, key), entry)
             except Exception:  # noqa: BLE001, S110 - missing or stale: the call compiles
@@ -401,6 +394,20 @@ class Stored:
         if entry["compiled"] is not None:
             return _Lowered(self, entry, None)
         return _Lowered(self, entry, entry["program"].lower(*leaves))
+
+
+def _split(args):
+    """`(tree, static, leaves)` of a call's arguments: the structure and leaves of its
+    arrays, and the rest (`eqx.partition`)."""
+    dyn, static = eqx.partition(args, eqx.is_array)
+    leaves, tree = jax.tree.flatten(dyn)
+    return tree, static, leaves
+
+
+def _new_entry(folder: pathlib.Path, key: str, out_tree) -> dict:
+    """An entry of `Stored._programs` for `key` in `folder`: nothing loaded yet."""
+    return {"out_tree": out_tree, "path": folder / f"{key}{_SUFFIX}", "compiled": None,
+            "program": None, "lock": threading.Lock()}  # fmt: skip
 
 
 class _NotLowered(Exception):
