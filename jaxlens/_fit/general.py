@@ -17,7 +17,14 @@ from .._camera import Camera
 from .._exact import _shadow_angle
 from .._programs import Stored
 from .._scene import Scene
-from .._util import OLDER_CPU_FUSION, SIDE_PROGRAM, compile_ahead, filter_jit_cpu, to_device
+from .._util import (
+    FIT_PROGRAM,
+    OLDER_CPU_FUSION,
+    SIDE_PROGRAM,
+    compile_ahead,
+    filter_jit_cpu,
+    to_device,
+)
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import _chunks, _pixel_edges
@@ -190,7 +197,7 @@ def _residuals_model(theta, args, prob: _Problem):
     return jnp.concatenate([r.ravel(), prior[None]]), m0
 
 
-@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+@functools.partial(filter_jit_cpu, options=FIT_PROGRAM)
 def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     """`dense_least_squares` on the residuals, the model as its auxiliary output."""
     return dense_least_squares(
