@@ -173,9 +173,16 @@ def render(
       about twice as fast and keeps sky directions within 0.01 pixel).
 
     **Returns:** linear float32 RGB `(H, W, 3)`, or `(N, H, W, 3)` for a batch of
-    frames; captured rays are 0.
+    frames; captured rays are 0. A host driver: under `jit`, `vmap` or `grad` use
+    `render_array` (one compiled program, differentiable), which this raises a
+    `TypeError` to say.
     """
     scene = as_scene(scene, sky, accuracy)
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(scene)):
+        raise TypeError(
+            "jaxlens.render runs on the host (blocks, progress, numpy result) and cannot "
+            "be traced: use jaxlens.render_array under jit, vmap or grad"
+        )
     single = scene.camera.batch_shape == ()
     out = _run(*_prepared(scene, chunk_samples, dtype), progress)
     return out[0] if single else out

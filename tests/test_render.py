@@ -398,3 +398,12 @@ def test_render_array_rejects_a_batch_and_render_takes_it_as_frames():
     with pytest.raises(ValueError, match="one camera"):
         render_array(cam, SKY)
     assert render(cam, SKY).shape == (2, 8, 12, 3)
+
+
+def test_render_under_jit_says_to_use_render_array():
+    # `render` drives blocks from the host; traced, it says what to call instead
+    # (the trace failed inside its checks with a TracerArrayConversionError before).
+    with pytest.raises(TypeError, match="render_array"):
+        jax.jit(lambda d: render(Camera(d, 1.0, 12, 8), SKY))(12.0)
+    with pytest.raises(TypeError, match="render_array"):
+        jax.grad(lambda d: render(Camera(d, 1.0, 12, 8), SKY).sum())(12.0)
