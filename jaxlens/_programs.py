@@ -309,6 +309,25 @@ class Stored:
                 return self._fn(*args)
         return jax.tree.unflatten(entry["out_tree"], entry["compiled"](*leaves))
 
+    def is_kept(self, *args) -> bool:
+        """Whether a call with `args` would find its executable kept (loaded, being
+        loaded, or in its file), and so neither trace nor compile. Never waits."""
+        if not keeping() or jax.device_count() != 1:
+            return False
+        tree, static, leaves = _split(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return False
+        key = _key(self._name, tree, static, leaves)
+        if key is None:
+            return False
+        with self._lock:
+            if (_FOLDER, key) in self._loading:
+                return True
+            entry = self._programs.get((_FOLDER, key))
+        if entry is not None:
+            return entry["compiled"] is not None
+        return (_FOLDER / f"{key}{_SUFFIX}").exists()
+
     def preload(self, *args) -> threading.Thread | None:
         """Load the kept executable of this call on a background thread (returned), for
         a later call with arguments of the same kind (nothing where no folder is set or

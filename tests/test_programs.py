@@ -211,3 +211,25 @@ def test_the_last_call_noted_is_loaded_before_its_arguments_are_known(tmp_path):
     # A call of another kind: the noted program loaded in vain, the call compiled.
     one, other, traced = _run(tmp_path, "last", "other")
     assert one == 1 and traced and other != first
+
+
+def test_is_kept_says_whether_a_call_would_load_its_program(tmp_path):
+    import jax
+    import jax.numpy as jnp
+
+    from jaxlens._util import filter_jit_cpu
+
+    f = _programs.Stored(filter_jit_cpu(lambda x: 2.0 * x, options={}),
+                         lambda *_: jax.tree.structure(0))  # fmt: skip
+    x = jnp.arange(3.0)
+    assert not f.is_kept(x)  # no folder: nothing is kept
+    _programs.use_folder(tmp_path)
+    try:
+        assert not f.is_kept(x)
+        f(x)  # compiled and kept
+        assert f.is_kept(x)
+        assert not f.is_kept(jnp.arange(4.0))  # another shape
+        fresh = _programs.Stored(f._fn, f._structure)  # as a new process sees it: the file
+        assert fresh.is_kept(x)
+    finally:
+        _programs.use_folder(None)
