@@ -113,20 +113,23 @@ class _Static:
 # render's block, by contrast, runs twice as long with it, so it keeps the default.
 OLDER_CPU_FUSION = {"xla_cpu_use_fusion_emitters": False}
 
-# `OLDER_CPU_FUSION` with the code generated in one piece, not split over the cores: for
-# a program that compiles beside another (on a second thread, or on the main one while
-# the other compiles or runs), which then keeps the other core. Measured: `trace`'s
-# look-up beside the table's build (first trace 1.76 s instead of 1.85 s), the fit's
-# start search beside its solver (cold fit 9.5 s instead of 9.9 s) and the noise
-# check beside the first pass (that solve 1.0-1.1 s instead of 1.3-1.4 s); each runs as
-# fast.
-SIDE_PROGRAM = {**OLDER_CPU_FUSION, "xla_cpu_parallel_codegen_split_count": 1}
-
-# `OLDER_CPU_FUSION` with LLVM's optimisation at level 1 (XLA's default is 3): the fit's
-# solver, whose model-and-Jacobian code runs faster so (the fit benchmark ring's solve,
-# three evaluations, 0.63 s instead of 0.90 s; compiled in 3.25 s instead of 3.67 s;
-# medians of 3, the same result to the last bit).
+# `OLDER_CPU_FUSION` with LLVM's optimisation at level 1 (XLA's default is 3): code
+# that compiles sooner and, for these programs, runs as fast or faster. The fit's
+# solver: its solve of the fit benchmark ring (three evaluations of the model and its
+# Jacobian) 0.63 s instead of 0.90 s, compiled in 3.25 s instead of 3.67 s (medians of
+# 3; the same result to the last bit); the start search compiled in 1.33-1.36 s
+# instead of 1.42-1.56 s, running as fast.
 FIT_PROGRAM = {**OLDER_CPU_FUSION, "xla_backend_optimization_level": 1}
+
+# `FIT_PROGRAM`'s options with the code generated in one piece, not split over the
+# cores: for a program that compiles beside another (on a second thread, or on the main
+# one while the other compiles or runs), which then keeps the other core. Measured (the
+# one piece): `trace`'s look-up beside the table's build (first trace 1.76 s instead of
+# 1.85 s), the fit's start search beside its solver (cold fit 9.5 s instead of 9.9 s)
+# and the noise check beside the first pass (that solve 1.0-1.1 s instead of 1.3-1.4
+# s); each runs as fast. (Level 1: the first eager `trace` of 100,000 rays 0.47-0.49 s
+# instead of 0.52-0.58 s, again 3.4-3.5 ms instead of 3.6-3.7 ms.)
+SIDE_PROGRAM = {**FIT_PROGRAM, "xla_cpu_parallel_codegen_split_count": 1}
 
 
 class filter_jit_cpu:
