@@ -28,7 +28,7 @@ from ._raymap import RayMap, placeholder
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import compile_ahead, is_concrete
+from ._util import compile_ahead, host_driver, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -178,11 +178,7 @@ def render(
     `TypeError` to say.
     """
     scene = as_scene(scene, sky, accuracy)
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(scene)):
-        raise TypeError(
-            "jaxlens.render runs on the host (blocks, progress, numpy result) and cannot "
-            "be traced: use jaxlens.render_array under jit, vmap or grad"
-        )
+    host_driver("render", "use jaxlens.render_array there", scene)
     single = scene.camera.batch_shape == ()
     out = _run(*_prepared(scene, chunk_samples, dtype), progress)
     return out[0] if single else out

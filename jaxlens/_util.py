@@ -27,6 +27,15 @@ def is_concrete(tree) -> bool:
     return all(concrete(x) is not None for x in jax.tree.leaves(tree) if eqx.is_array(x))
 
 
+def host_driver(name: str, instead: str, *trees) -> None:
+    """Raise a `TypeError` when any leaf of `trees` is a tracer: `name` runs on the host
+    (numpy, blocks, a solver of its own) and cannot be traced by `jit`, `vmap` or
+    `grad`; `instead` says what to call under them."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees)):
+        raise TypeError(f"jaxlens.{name} runs on the host and cannot be traced by jit, "
+                        f"vmap or grad: {instead}")  # fmt: skip
+
+
 def tracing() -> bool:
     """True inside a JAX transformation's trace (`jit`, `grad`, `vmap`, ...), also where
     the caller's own values are concrete (a closure, a static argument): a compiled

@@ -692,3 +692,16 @@ def test_cli(tmp_path, capsys, monkeypatch):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("jaxlens fit: error:") and "\n" not in err
+
+
+@pytest.mark.parametrize("call", ["fit_ring", "fit", "find_arcs"])
+def test_host_drivers_under_a_trace_say_what_to_call(call):
+    # They run on the host (numpy, a solver of their own): traced, each says so and
+    # names what to differentiate (a TracerArrayConversionError from deep inside before).
+    img = modelled(20.0, 60.0, 1.5, 0.05)
+    scene = jl.Scene(Camera(20.0, 1.0, W, H), GaussianStar(0.02) + Uniform(0.0))
+    f = {"fit_ring": lambda im: jl.fit_ring(im, star_sigma=0.02).distance,
+         "fit": lambda im: jl.fit(scene, im).values["distance"],
+         "find_arcs": lambda im: jl.find_arcs(im).x_c}[call]  # fmt: skip
+    with pytest.raises(TypeError, match=f"jaxlens.{call} runs on the host"):
+        jax.jit(f)(img)

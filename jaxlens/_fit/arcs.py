@@ -32,6 +32,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .._util import host_driver
+
 _EDGE = 0.25  # width of the shadow's edge in the model (pixels)
 # Range of the shape c: m, n > 0 needs -3 < c < 1; the exact map has c <= -1 (c -> -1
 # far from the hole), and c > -1 would let a lone arc pass for the other one.
@@ -482,8 +484,10 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
 
     **Returns:** an `ArcGuess`; its `score` says whether anything ring-like was found.
     Raises `ValueError` for an image that is not 2-D, smaller than 8 x 8 pixels or with
-    fewer than 64 finite pixels, or a negative `noise` or `focal`.
+    fewer than 64 finite pixels, or a negative `noise` or `focal`, and a `TypeError`
+    under `jit`, `vmap` or `grad` (it runs on the host).
     """
+    host_driver("find_arcs", "call it on the image's values, outside the trace", img)
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 3:
         a = a.mean(axis=-1)

@@ -23,6 +23,7 @@ from .._util import (
     SIDE_PROGRAM,
     compile_ahead,
     filter_jit_cpu,
+    host_driver,
     to_device,
 )
 from . import psf as _psf, starts as _starts
@@ -416,8 +417,11 @@ def fit(
       `block` (default: the smallest leaving at most `max_pixels`, default 65,536).
     - `knots`: of the ray map; `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings.
 
-    **Returns:** a `Fit`.
+    **Returns:** a `Fit`. A host driver: under `jit`, `vmap` or `grad` it raises a
+    `TypeError` (differentiate the model, `ring_image` or `render_array`, instead).
     """
+    host_driver("fit", "differentiate the model (jaxlens.ring_image, "
+                "jaxlens.render_array) instead", scene, image, init)  # fmt: skip
     t_start = time.perf_counter()
     img, fits, transfer = _load(image)
     h, w = img.shape

@@ -5,6 +5,7 @@ import math
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
+from .._util import host_driver
 from .general import fit
 from .pixels import _as_gray
 from .result import RingFit
@@ -54,8 +55,11 @@ def fit_ring(
     - `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings (`fit`'s).
 
     **Returns:** a `RingFit`. Raises `ValueError` for an unreadable, non-finite or
-    blank image, or one with no ring.
+    blank image, or one with no ring, and a `TypeError` under `jit`, `vmap` or `grad`
+    (it runs on the host: differentiate `ring_image` instead).
     """
+    host_driver("fit_ring", "differentiate the model (jaxlens.ring_image) instead", image,
+                star_sigma, init)  # fmt: skip
     img, transfer = _as_gray(image)
     if star_sigma is not None and not (0 < star_sigma < math.pi):
         raise ValueError(f"star_sigma={star_sigma!r} must be in (0, pi) radians")
