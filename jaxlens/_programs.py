@@ -130,7 +130,7 @@ def _code_digest() -> str:
         h.update(path.read_bytes())
     device = jax.devices()[0]
     h.update(f"{jax.__version__} {jaxlib.__version__} {jax.default_backend()}".encode())
-    # The libraries whose code the fit's programs trace (its solver, its QR).
+    # The libraries whose code the fit's programs trace (its solver, its linear solves).
     h.update(repr([_version(name) for name in ("equinox", "lineax", "optimistix")]).encode())
     h.update(f"{device.device_kind} {device.client.platform_version}".encode())
     h.update(_cpu_flags().encode())
@@ -144,7 +144,7 @@ def _code_digest() -> str:
 
 @functools.cache
 def _lapack_ready() -> None:
-    """Set up JAX's LAPACK kernels (for the fit's QR and eigensolver), which JAX does
+    """Set up JAX's LAPACK kernels (for a kept program that calls them), which JAX does
     when it lowers a program that calls them: a loaded program that calls them without
     it would crash the process. Lowering a small QR does it (0.1 s: scipy's LAPACK)."""
     import jax.numpy as jnp

@@ -251,6 +251,32 @@ def test_solve_spd_matches_numpy():
         np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=rtol, atol=rtol * np.abs(x).max())
 
 
+def test_the_solvers_damped_steps_match_lstsq():
+    """The Levenberg-Marquardt step's least squares ([J; sqrt(lambda) I], columns of
+    scales 1e-3 to 1e3, as the fit's parameters have) by the scaled normal equations
+    against numpy's lstsq; and optimistix's largest damping, sqrt(lambda) ~ 1e154,
+    gives a step of zero, not NaN."""
+    import lineax as lx
+
+    from jaxlens._fit.solve import ScaledNormalEquations
+
+    rng = np.random.default_rng(11)
+    jac = rng.standard_normal((4000, 7)) * np.geomspace(1e-3, 1e3, 7)
+    r = rng.standard_normal(4000)
+    with jax.enable_x64(True):
+        for root_lambda in (0.0, 0.3, 1e154):
+            a = np.concatenate([jac, root_lambda * np.eye(7)])
+            b = np.concatenate([r, np.zeros(7)])
+            op = lx.MatrixLinearOperator(jnp.asarray(a))
+            x = np.asarray(lx.linear_solve(op, jnp.asarray(b), ScaledNormalEquations()).value)
+            assert np.all(np.isfinite(x))
+            if root_lambda < 1e100:
+                want = np.linalg.lstsq(a, b, rcond=None)[0]
+                np.testing.assert_allclose(x, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+            else:
+                assert np.abs(x).max() < 1e-140
+
+
 @pytest.mark.parametrize("case", ["plain", "held", "collinear"])
 def test_newton_decrement_is_the_gauss_newton_gain(case):
     """`newton_decrement` (elimination written out) against the chi^2 gain of the

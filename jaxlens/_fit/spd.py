@@ -6,7 +6,8 @@ def solve_spd(a, b):
     static, a few parameters) by Gauss-Jordan elimination written out: p steps of
     array operations, no pivots (none is needed for such a matrix), no LAPACK call.
 
-    The fit's loops call it where they called `jnp.linalg.solve` or `eigh`: in the
+    The fit's loops call it where they called `jnp.linalg.solve`, `eigh` or lineax's QR
+    (the Levenberg-Marquardt step, `solve.ScaledNormalEquations`): in the
     solver's loop, `eigh` of the accepted point's Jacobian gave one executable
     different results from run to run (a ring fit: 11 of 15 runs in one process
     agreed, the others ended at D = 1.5, 1e40, ...), a race of XLA's CPU runtime
