@@ -214,18 +214,25 @@ class Stored:
         self._lock = threading.Lock()  # one entry a key, whichever thread comes first
         self._loading = {}  # the keys `preload_last` is loading: their events
 
-    def _entry(self, args):
-        """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
-        (once loaded or compiled), the program to compile otherwise (`jax.jit` of the
-        function on the flat leaves), the result's structure and the file."""
+    def _keyed(self, args):
+        """`(key, tree, static, leaves)` of a call whose program can be kept (a folder
+        set, one device, no tracer among its arrays), else `None`."""
         if not keeping() or jax.device_count() != 1:
             return None
         tree, static, leaves = _split(args)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return None  # part of a caller's trace
         key = _key(self._name, tree, static, leaves)
-        if key is None:
+        return None if key is None else (key, tree, static, leaves)
+
+    def _entry(self, args):
+        """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
+        (once loaded or compiled), the program to compile otherwise (`jax.jit` of the
+        function on the flat leaves), the result's structure and the file."""
+        keyed = self._keyed(args)
+        if keyed is None:
             return None
+        key, tree, static, leaves = keyed
         with self._lock:
             loading = self._loading.get((_FOLDER, key))
         if loading is not None:  # `preload_last` is loading it: no second load
@@ -312,14 +319,10 @@ class Stored:
     def is_kept(self, *args) -> bool:
         """Whether a call with `args` would find its executable kept (loaded, being
         loaded, or in its file), and so neither trace nor compile. Never waits."""
-        if not keeping() or jax.device_count() != 1:
+        keyed = self._keyed(args)
+        if keyed is None:
             return False
-        tree, static, leaves = _split(args)
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return False
-        key = _key(self._name, tree, static, leaves)
-        if key is None:
-            return False
+        key = keyed[0]
         with self._lock:
             if (_FOLDER, key) in self._loading:
                 return True

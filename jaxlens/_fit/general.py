@@ -211,7 +211,7 @@ def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
 
-# Compiled ahead while the first pass runs.
+# Compiled ahead while the fit waits for the solver's program.
 @functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
 def _renoised(model, data, weight, old, new, r, jac, moved):
     """The residuals and Jacobian of a Gaussian fit's point (model `model` before

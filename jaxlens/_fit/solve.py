@@ -28,14 +28,22 @@ def gauss_newton(r, jac):
     1e-14 of the trace on `J^T J`, so that directions the data do not fix, such as a
     held parameter's zero column, neither move nor add. Solved by `solve_spd`, not
     LAPACK (why: see there)."""
-    scale = jnp.sqrt(jnp.sum(jac * jac, axis=0))
-    scale = jnp.where(scale > 0, scale, 1.0)
-    jn = jac / scale
+    jn, a, scale = _scaled_normal(jac)
     g = jn.T @ r
-    a = jn.T @ jn
-    a = a + 1e-14 * jnp.maximum(jnp.trace(a), 1.0) * jnp.eye(g.shape[0], dtype=a.dtype)
     z = solve_spd(a, g)
     return -z / scale, g @ z
+
+
+def _scaled_normal(a):
+    """`(an, m, scale)` of a tall `a (N, p)`: its columns scaled to unit norm (`an = a /
+    scale`; a zero column kept) and their normal matrix `an^T an` with a ridge of 1e-14
+    of its trace, for `solve_spd`."""
+    scale = jnp.sqrt(jnp.sum(a * a, axis=0))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    an = a / scale
+    m = an.T @ an
+    m = m + 1e-14 * jnp.maximum(jnp.trace(m), 1.0) * jnp.eye(m.shape[0], dtype=m.dtype)
+    return an, m, scale
 
 
 class ScaledNormalEquations(lx.AbstractLinearSolver):
@@ -55,14 +63,9 @@ class ScaledNormalEquations(lx.AbstractLinearSolver):
         # Columns scaled by their largest entry first: a damping row of sqrt(lambda) up
         # to 1e154 (optimistix's largest) would overflow when squared.
         big = jnp.max(jnp.abs(a), axis=0)
-        a = a / jnp.where(big > 0, big, 1.0)
-        norm = jnp.sqrt(jnp.sum(a * a, axis=0))
-        scale = jnp.where(big > 0, big, 1.0) * jnp.where(norm > 0, norm, 1.0)
-        an = a / jnp.where(norm > 0, norm, 1.0)
-        n = an.shape[1]
-        m = an.T @ an
-        m = m + 1e-14 * jnp.maximum(jnp.trace(m), 1.0) * jnp.eye(n, dtype=m.dtype)
-        return an, m, scale, operator.in_structure()
+        big = jnp.where(big > 0, big, 1.0)
+        an, m, norm = _scaled_normal(a / big)
+        return an, m, big * norm, operator.in_structure()
 
     def compute(self, state, vector, options):
         del options
