@@ -227,6 +227,15 @@ def test_hole_off_the_image_centre():
         err = abs(fit.values[name] - true)
         assert err < 0.01 * true and err < 4.0 * fit.errors[name], (name, fit.values[name])
     assert abs(fit.yaw_deg - yaw) < 0.05 and abs(fit.pitch_deg - pitch) < 0.05, fit.summary()
+    # The turn held at its true value (the model's camera carries it): the model keeps
+    # the rotation (only a turn held at zero gives the unrotated model's plan).
+    turned = jl.Scene(jl.Camera(20.0, 1.0, 8, 8, yaw=rad(yaw), pitch=rad(pitch)), _model().sky)
+    held = jl.fit(turned, img)
+    assert held.converged and not held.degenerate, held.message
+    for name, true in (("distance", 20.0), ("fov", rad(50.0))):
+        err = abs(held.values[name] - true)
+        assert err < 0.01 * true and err < 4.0 * held.errors[name], (name, held.values[name])
+        assert abs(held.values[name] - fit.values[name]) < fit.errors[name], name
 
 
 def test_one_faint_image_far_off_the_axis_is_flagged():

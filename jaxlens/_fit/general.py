@@ -85,6 +85,10 @@ class _Problem(eqx.Module):
     noise: str = eqx.field(static=True)
     psf: str | None = eqx.field(static=True)  # None, "gaussian" or "image"
     knots: int = eqx.field(static=True)
+    # Yaw and pitch held at zero and no roll: the model's view is concretely unrotated
+    # (a plan without the view rotation and its tangents, the edge's offsets exact in
+    # the image plane). The benchmark ring's Jacobian compiled in 1.8 s instead of 2.3 s.
+    centred: bool = eqx.field(static=True)
 
 
 class _Select(eqx.Module):
@@ -126,6 +130,14 @@ def _model(p, scene, grid, otf, prob: _Problem):
     the fine bins then the coarse blocks (one rule of order k for both), or with a PSF the regular
     grid of bins, rendered on a margin, blurred and cropped (row-major); `p` the
     physical value of every parameter (`_physical`)."""
+    # Concrete zeros, which the plan reads as no rotation: the model's camera is at the
+    # origin of the sky's frame (`fit` places it there), and with `prob.centred` its
+    # view is unrotated.
+    zero = np.zeros((), scene.camera.dtype)
+    fields = ["azimuth", "elevation"] + ["yaw", "pitch", "roll"] * prob.centred
+    scene = eqx.tree_at(lambda s: [getattr(s.camera, n) for n in fields], scene,
+                        [zero] * len(fields))  # fmt: skip
+    p = {n: v for n, v in p.items() if n not in fields}
     scene = apply(scene, {n: v for n, v in p.items() if in_scene(n)})
     table = escape_table(scene.camera.distance, knots=prob.knots)
     plan = _plan.plan(scene)
@@ -570,7 +582,10 @@ def fit(
                     floor_of(model_scene.sky)
             given |= {n: start[n] for n in ("psf_sigma", "ring_flux")}
             sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
-            prob = _Problem(names, b, k, pad, kind, psf_kind, int(knots))
+            centred = not {"yaw", "pitch"} & set(free) and not np.any(
+                [given.get("yaw", 0.0), given.get("pitch", 0.0), np.any(roll)]
+            )
+            prob = _Problem(names, b, k, pad, kind, psf_kind, int(knots), bool(centred))
             # Clipping acts on each original pixel, with its own noise.
             clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
             args = (model_scene, grid, otf, to_device(pix.data), to_device(pix.weight), clip,
