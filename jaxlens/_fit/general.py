@@ -326,6 +326,27 @@ def _source_start(img, valid, floor, ring_px):
     return math.atan2(s, c)
 
 
+def _psf_width(psf) -> float:
+    """The Gaussian width (pixels) of a PSF: a Gaussian's own, or an image's rms offset
+    from its centroid along one axis (negative pixels counted as 0)."""
+    if np.ndim(psf) == 0:
+        return float(psf)
+    p = np.clip(np.asarray(psf, np.float64), 0.0, None)
+    total = p.sum()
+    if not total > 0:
+        return 0.0
+    y, x = np.indices(p.shape)
+    cx, cy = (p * x).sum() / total, (p * y).sum() / total
+    return math.sqrt((p * ((x - cx) ** 2 + (y - cy) ** 2)).sum() / (2.0 * total))
+
+
+def _unblurred_width(width_px: float, psf_px: float) -> float:
+    """A ring's radial Gaussian width before a PSF of Gaussian width `psf_px` blurred
+    it to `width_px` (pixels): the widths in quadrature, at least a quarter of
+    `width_px` (where the PSF makes nearly all of it, the difference is noise)."""
+    return math.sqrt(max(width_px**2 - psf_px**2, (0.25 * width_px) ** 2))
+
+
 def _arcs_candidates(arcs, width: int, blur_px: float = 0.0):
     """Cameras along the exact ring relation that put the Einstein ring at the arcs'
     radius: `(distance, fov, focal, sigma)` arrays (R_S, radians, pixels, radians),
@@ -420,7 +441,9 @@ def fit(
     - `mask`: bool array (True = bad pixel) or a mask image path (> 0.5 = bad).
     - `init`: starting values by parameter name (physical units; `fov_deg` allowed).
     - `supersample`: the Gauss-Legendre order k (default: from the ring's width in the
-      compared bins, the smallest k averaging its Gaussian to ~4e-5 of its peak).
+      compared bins before the PSF, the image's width less the PSF's in quadrature:
+      the smallest k averaging its Gaussian to ~4e-5 of its peak; 3 at least under a
+      PSF).
     - `block`, `max_pixels`: the bins compared. Without a PSF, bins of side `block`
       (default 1, larger only when the ring is wide and the image large) where the
       image has structure (the ring's band, the shadow's edge, any light 3 noise
@@ -518,6 +541,7 @@ def fit(
             noise_sigma = _noise_clipped(gray, prof, lo, hi)
         start = values_of(scene) | {"psf_sigma": float(psf) if psf_kind == "gaussian"
                                     else 1.0, "ring_flux": 1.0}  # fmt: skip
+        psf_px = 0.0 if psf_kind is None else _psf_width(psf)
         if atol is None:
             atol = 1e-6
 
@@ -546,10 +570,13 @@ def fit(
                         b += 1
                 pix = _grid_sets(gray, valid, int(b))
             b = pix.block
-            # Under a PSF the image's ring is wider than the rendered one: order 2 is
-            # left to images without one.
+            # The rendered ring's width: the image's, less the PSF's in quadrature (a
+            # narrow ring under a wide PSF needs a higher order than its image shows).
+            # Under a PSF order 2 is not used: the measured width's error grows as the
+            # PSF's share of it does.
             k = (int(supersample) if supersample is not None
-                 else _samples_for(prof.ring_width, b, 2 if psf_kind is None else 3))  # fmt: skip
+                 else _samples_for(_unblurred_width(prof.ring_width, psf_px), b,
+                                   2 if psf_kind is None else 3))  # fmt: skip
             yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
             cam = Camera(start["distance"], start["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
                          supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
