@@ -609,10 +609,12 @@ def fit(
                     floor_of(model_scene.sky)
             given |= {n: start[n] for n in ("psf_sigma", "ring_flux")}
             sel = _select(names, free, {n: start[n] if n in free else given[n] for n in names})
-            centred = not {"yaw", "pitch"} & set(free) and not np.any(
-                [given.get("yaw", 0.0), given.get("pitch", 0.0), np.any(roll)]
+            turned = (
+                bool({"yaw", "pitch"} & set(free))
+                or bool(np.any(roll))
+                or any(given.get(n, 0.0) != 0.0 for n in ("yaw", "pitch"))
             )
-            prob = _Problem(names, b, k, pad, kind, psf_kind, int(knots), bool(centred))
+            prob = _Problem(names, b, k, pad, kind, psf_kind, int(knots), centred=not turned)
             # Clipping acts on each original pixel, with its own noise.
             clip = to_device([lo, hi, noise_sigma, max(noise_sigma, 1e-12 * scale)])
             args = (model_scene, grid, otf, to_device(pix.data), to_device(pix.weight), clip,
