@@ -35,6 +35,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ._util import has_tracer
+
 _FOLDER: pathlib.Path | None = None
 _SUFFIX = ".executable"
 
@@ -220,7 +222,7 @@ class Stored:
         if not keeping() or jax.device_count() != 1:
             return None
         tree, static, leaves = _split(args)
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        if has_tracer(leaves):
             return None  # part of a caller's trace
         key = _key(self._name, tree, static, leaves)
         return None if key is None else (key, tree, static, leaves)

@@ -17,7 +17,15 @@ from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
-from ._util import OLDER_CPU_FUSION, SIDE_PROGRAM, compile_ahead, filter_jit_cpu, to_device, tracing
+from ._util import (
+    OLDER_CPU_FUSION,
+    SIDE_PROGRAM,
+    compile_ahead,
+    filter_jit_cpu,
+    has_tracer,
+    to_device,
+    tracing,
+)
 
 
 class TraceResult(eqx.Module):
@@ -429,9 +437,7 @@ def trace(
             raise TypeError(f"{name} must be real numbers, got dtype {kind}")
     dtype = jnp.result_type(float, alpha, distance)
     distance = _check_distance(distance, dtype)
-    traced = (
-        tracing() or isinstance(alpha, jax.core.Tracer) or isinstance(distance, jax.core.Tracer)
-    )
+    traced = tracing() or has_tracer(alpha, distance)
     # Host distances stay on the host (padded there by `_eager`, nothing compiled).
     distance = (jnp if isinstance(distance, jax.Array) else np).asarray(distance, dtype)
     if isinstance(method, str):

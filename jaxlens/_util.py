@@ -27,11 +27,17 @@ def is_concrete(tree) -> bool:
     return all(concrete(x) is not None for x in jax.tree.leaves(tree) if eqx.is_array(x))
 
 
+def has_tracer(*trees) -> bool:
+    """Whether any leaf of `trees` is a tracer (part of a `jit`, `vmap` or `grad`
+    trace)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees))
+
+
 def host_driver(name: str, instead: str, *trees) -> None:
     """Raise a `TypeError` when any leaf of `trees` is a tracer: `name` runs on the host
     (numpy, blocks, a solver of its own) and cannot be traced by `jit`, `vmap` or
     `grad`; `instead` says what to call under them."""
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trees)):
+    if has_tracer(*trees):
         raise TypeError(f"jaxlens.{name} runs on the host and cannot be traced by jit, "
                         f"vmap or grad: {instead}")  # fmt: skip
 
@@ -179,7 +185,7 @@ class filter_jit_cpu:
         import equinox as eqx
 
         dynamic, static = eqx.partition(args, eqx.is_array)
-        nested = any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(dynamic))
+        nested = has_tracer(dynamic)
         return self._jitted(nested), dynamic, _Static(static)
 
     def __call__(self, *args):

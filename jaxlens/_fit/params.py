@@ -18,7 +18,7 @@ import numpy as np
 
 from .._sky import GaussianStar, SkySum, Uniform
 from .._sky._base import angles_from_direction, direction_from_angles
-from .._util import to_device
+from .._util import has_tracer, to_device
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,7 +197,7 @@ def apply(scene, values: dict):
     for i, given in moved.items():
         star = star_of(scene.sky, i)
         n, dt = star.direction, jnp.result_type(star.direction)
-        host = not any(isinstance(x, jax.core.Tracer) for x in (n, *given.values()))
+        host = not has_tracer(n, *given.values())
         cur = angles_from_direction(np.asarray(n) if host else n)
         lon = given.get("source_lon", cur[0])
         lat = given.get("source_lat", cur[1])

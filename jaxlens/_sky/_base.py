@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._camera import rotate, rotation_matrix
 from .._fastmath import arctan2
-from .._util import concrete as _concrete
+from .._util import concrete as _concrete, has_tracer
 
 
 class AbstractSky(eqx.Module):
@@ -143,7 +143,7 @@ def direction_from_angles(lon: ArrayLike, lat: ArrayLike) -> Float[Array, "... 3
     behind the hole; longitude grows toward $+x$, latitude toward $+y$."""
     dtype = jnp.result_type(float, lon, lat)
     # Values known now are computed on the host: each eager jnp operation would compile.
-    host = not any(isinstance(a, jax.core.Tracer) for a in (lon, lat))
+    host = not has_tracer(lon, lat)
     xp = np if host else jnp
     lon, lat = xp.broadcast_arrays(*(xp.asarray(a, dtype) for a in (lon, lat)))
     n = xp.stack([xp.cos(lat) * xp.sin(lon), xp.sin(lat), xp.cos(lat) * xp.cos(lon)], -1)
