@@ -4,9 +4,27 @@ One of each, so that "is this value known now?" and "make this a float array" me
 the same thing in the camera, the skies, the effects and the disk.
 """
 
+import atexit
+import gc
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+def _exit_quickly() -> None:
+    """At the interpreter's exit, every object still alive is left out of its last
+    garbage collections (`gc.freeze`): they walk all of JAX's traces and caches, 0.13 s
+    at the end of a script that traced 100,000 rays once (0.04 s frozen). Objects are
+    still freed by their reference counts; only cyclic garbage left at exit is not
+    finalised, which Python does not promise either. Not where OpenImageIO is loaded:
+    its binding (nanobind) reports each of its objects left at exit as a leak."""
+    if "OpenImageIO" not in sys.modules:
+        gc.freeze()
+
+
+atexit.register(_exit_quickly)
 
 
 def concrete(x) -> np.ndarray | None:

@@ -7,6 +7,7 @@ file (every file is written atomically).
 
 import argparse
 import functools
+import gc
 import importlib
 import os
 import signal
@@ -154,6 +155,7 @@ def main(argv=None) -> int:
         functools.partial(_redeliver, hook=sys.unraisablehook),
     )
     spinner = args = None
+    frozen = False
     try:
         argv = sys.argv[1:] if argv is None else list(argv)
         args = build_parser().parse_args(argv)
@@ -189,6 +191,12 @@ def main(argv=None) -> int:
             from ._programs import keep_programs
 
             keep_programs()
+            # The objects alive now (JAX's modules, most of them) are left out of the
+            # garbage collector's passes while the command runs: each full pass walked
+            # them all (0.05 s; 0.2 s in all in a first fit). Given back at the end.
+            if gc.get_freeze_count() == 0:
+                gc.freeze()
+                frozen = True
         # From here an interrupt unwinds (temporary files are removed on the way).
         sigint = previous.get(signal.SIGINT)
         _set_handlers({
@@ -219,6 +227,8 @@ def main(argv=None) -> int:
             spinner.stop()
         sys.unraisablehook = hook
         _set_handlers(previous)
+        if frozen:
+            gc.unfreeze()
 
 
 def finish(code: int) -> None:

@@ -36,6 +36,23 @@ def test_options_in_degrees_are_named_so_and_the_old_names_stay(tmp_path, capsys
     assert "--fov-deg DEG, --fov DEG" in help_text and "--pitch-deg DEG" in help_text
 
 
+def test_the_collector_skips_the_objects_loaded_while_a_command_runs(tmp_path, capsys,
+                                                                       monkeypatch):  # fmt: skip
+    import gc
+
+    seen, render = [], jl.render
+
+    def counted(*args, **kwargs):
+        seen.append(gc.get_freeze_count())
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(jl, "render", counted)
+    args = ["render", "--sky", "star", "--size", "12x8", "-o", str(tmp_path / "x.png")]
+    assert run(args, capsys)[0] == 0
+    assert seen[0] > 0  # frozen while the command ran ...
+    assert gc.get_freeze_count() == 0  # ... and given back to the collector after it
+
+
 def test_render_star_exr(tmp_path, capsys):
     out = tmp_path / "x.exr"
     args = ["--sky", "star", "--size", "48x32", "--supersample", "2", "--distance", "10"]
