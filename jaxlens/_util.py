@@ -216,6 +216,15 @@ class filter_jit_cpu:
 
 
 _PENDING: list = []  # compile_ahead's futures not known to be done
+_IDLE: list = []  # when_idle's work, not yet done
+
+
+def when_idle(fn) -> None:
+    """Do `fn()` at the end of the next `compile_ahead` block if its compile is still
+    running then, on the core the wait would leave idle (else it is dropped): what a
+    later step needs ready, a module imported or a file format's plugin loaded. Its
+    errors are left to that later step, which meets them again."""
+    _IDLE.append(fn)
 
 
 class compile_ahead:
@@ -274,5 +283,11 @@ class compile_ahead:
     def __exit__(self, kind, value, tb):
         if kind is not None:  # the block failed (or Ctrl-C): no reason to wait
             return False
+        while _IDLE and not self._future.done():
+            try:
+                _IDLE.pop(0)()
+            except Exception:  # noqa: BLE001, S110 - the step that needs it reports it
+                pass
+        _IDLE.clear()
         self._future.result()
         return False

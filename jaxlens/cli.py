@@ -6,6 +6,7 @@ file (every file is written atomically).
 """
 
 import argparse
+import contextlib
 import functools
 import gc
 import importlib
@@ -14,7 +15,7 @@ import signal
 import sys
 import threading
 
-from . import _spinner
+from . import _io, _spinner
 
 # Each subcommand lives in a module with `register(subparsers)`; the handler it sets
 # with `set_defaults(run=...)` returns the exit code.
@@ -121,6 +122,17 @@ def _exit_at_once(signum, frame, command="jaxlens"):
     os._exit(128 + signum)
 
 
+@contextlib.contextmanager
+def _signals_end_at_once(at_once):
+    """Signals end the command at once (`_exit_at_once`) inside: for loading a native
+    module (`_io.native_import`)."""
+    previous = _set_handlers({signal.SIGINT: at_once, signal.SIGTERM: at_once})
+    try:
+        yield
+    finally:
+        _set_handlers(previous)
+
+
 def _set_handlers(handlers: dict) -> dict:
     """Install signal handlers (where this is the main thread); return the old ones.
     A signal that is ignored (`nohup`, a background job) stays ignored."""
@@ -156,6 +168,8 @@ def main(argv=None) -> int:
     )
     spinner = args = None
     frozen = False
+    native, _io.native_import = _io.native_import, functools.partial(_signals_end_at_once,
+                                                                      at_once)  # fmt: skip
     try:
         argv = sys.argv[1:] if argv is None else list(argv)
         args = build_parser().parse_args(argv)
@@ -227,6 +241,7 @@ def main(argv=None) -> int:
             spinner.stop()
         sys.unraisablehook = hook
         _set_handlers(previous)
+        _io.native_import = native
         if frozen:
             gc.unfreeze()
 

@@ -53,6 +53,30 @@ def test_the_collector_skips_the_objects_loaded_while_a_command_runs(tmp_path, c
     assert gc.get_freeze_count() == 0  # ... and given back to the collector after it
 
 
+def test_native_modules_load_where_a_signal_ends_the_command_at_once(tmp_path, capsys,
+                                                                       monkeypatch):  # fmt: skip
+    # A Ctrl-C in OpenImageIO's set-up (its first import, maybe while a render compiles)
+    # aborted the process: "Critical nanobind error".
+    import contextlib
+    import signal
+
+    from jaxlens import _io
+
+    seen, render = [], jl.render
+
+    def spied(*args, **kwargs):
+        with _io.native_import():
+            seen.append(signal.getsignal(signal.SIGINT))
+        seen.append(signal.getsignal(signal.SIGINT))
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(jl, "render", spied)
+    args = ["render", "--sky", "star", "--size", "12x8", "-o", str(tmp_path / "x.png")]
+    assert run(args, capsys)[0] == 0
+    assert seen[0].func is cli._exit_at_once and seen[1] is not seen[0]
+    assert _io.native_import is contextlib.nullcontext  # outside the command: as it was
+
+
 def test_render_star_exr(tmp_path, capsys):
     out = tmp_path / "x.exr"
     args = ["--sky", "star", "--size", "48x32", "--supersample", "2", "--distance", "10"]
@@ -517,6 +541,24 @@ def test_a_command_ends_after_its_compiles_and_exit_handlers(tmp_path):
     assert p.returncode == 3, p.stderr[-2000:]
     assert marker.read_text() == "compiled"
     assert p.stdout == "doneexit handler\n"
+
+
+def test_work_for_the_idle_core_is_done_while_a_compile_is_awaited_or_dropped():
+    import time
+
+    from jaxlens import _util
+
+    done = []
+    _util.when_idle(lambda: done.append("idle"))
+    _util.when_idle(lambda: 1 / 0)  # its error is left to the step that needs the work
+    _util.when_idle(lambda: done.append("after the error"))
+    with _util.compile_ahead.calls((time.sleep, 0.5)):  # a "compile" of 0.5 s
+        done.append("block")
+    assert done == ["block", "idle", "after the error"]
+    _util.when_idle(lambda: done.append("late"))
+    with _util.compile_ahead.calls((time.sleep, 0.0)):
+        time.sleep(0.2)  # the compile ends first: nothing to wait for, the work dropped
+    assert done[-1] == "after the error" and not _util._IDLE
 
 
 def test_command_line_process_has_no_traceback(tmp_path):

@@ -57,6 +57,39 @@ def test_png_gets_exposure_and_srgb(tmp_path):
     np.testing.assert_allclose(read_image(p), np.clip(img * 4.0, 0, 1), atol=0.5 / 255 * 2.4)
 
 
+def _png_row_filters(path) -> set[int]:
+    """The filter type byte of each row of an 8-bit RGB PNG (its IDAT data inflated)."""
+    import struct
+    import zlib
+
+    data, idat, pos = path.read_bytes(), b"", 8
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind = data[pos + 4 : pos + 8]
+        if kind == b"IHDR":
+            width, height = struct.unpack(">II", data[pos + 8 : pos + 16])
+        if kind == b"IDAT":
+            idat += data[pos + 8 : pos + 8 + length]
+        pos += 12 + length
+    raw = zlib.decompress(idat)
+    stride = 1 + 3 * width
+    return {raw[r * stride] for r in range(height)}
+
+
+def test_png_rows_filtered_by_sub_or_up_and_the_writer_prepared_writes_nothing(tmp_path):
+    from jaxlens import _io
+
+    _io.prepare_write(tmp_path / "a.png")
+    assert not list(tmp_path.iterdir())
+    # A smooth gradient with noise: libpng's full search picks "average" or "paeth" for
+    # some of its rows.
+    y, x = np.mgrid[0:64, 0:96].astype(np.float32)
+    img = (0.3 + 0.2 * np.sin(x / 7.0) * np.cos(y / 5.0))[..., None] + 0.02 * _image(64, 96)
+    p = write_image(tmp_path / "a.png", img)
+    assert _png_row_filters(p) <= {1, 2}  # sub, up
+    np.testing.assert_allclose(read_image(p), img, atol=0.01)
+
+
 def test_to_display_in_pieces_is_the_whole_image_transfer():
     # to_display works through the image in pieces of 2^20 values (bounded temporaries);
     # the result is the transfer applied to the whole image, across piece boundaries,
