@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 from . import _exact
 from ._programs import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
-from ._util import SIDE_PROGRAM, filter_jit_cpu, fusion_barrier, is_concrete, tracing
+from ._util import ONCE_PROGRAM, filter_jit_cpu, fusion_barrier, is_concrete, tracing
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -277,15 +277,10 @@ def _structure(cls, d, settings: dict):
 
 
 # The closed form on a few thousand knots, once a distance: compiled without LLVM's
-# optimisations (the table's errors unchanged) it compiles in 0.16 s instead of 0.37 s
-# and runs in 1.2 ms instead of 0.5 ms (float32, 1e-6 rad, both sides; float64 at
-# 1e-10 rad, 22,000 knots: 26 ms instead of 15 ms). Its code is generated in one piece:
-# it compiles beside another program (a render's block, `trace`'s look-up) and leaves
-# that one the other core.
-BUILD_OPTIONS = {**SIDE_PROGRAM, "xla_backend_optimization_level": 0}
-
-
-@functools.partial(filter_jit_cpu, options=BUILD_OPTIONS)
+# optimisations (`ONCE_PROGRAM`; the table's errors unchanged), its code generated in
+# one piece: it compiles beside another program (a render's block, `trace`'s look-up)
+# and leaves that one the other core.
+@functools.partial(filter_jit_cpu, options=ONCE_PROGRAM)
 def _tabulated_compiled(cls, d, settings: dict):
     return _tabulated(cls, d, **settings)
 

@@ -20,7 +20,7 @@ from .._scene import Scene
 from .._util import (
     FIT_PROGRAM,
     OLDER_CPU_FUSION,
-    SIDE_PROGRAM,
+    ONCE_PROGRAM,
     compile_ahead,
     filter_jit_cpu,
     host_driver,
@@ -223,8 +223,9 @@ def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
 
-# Compiled ahead while the fit waits for the solver's program.
-@functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
+# Compiled ahead while the fit waits for the solver's program, beside it: without LLVM's
+# optimisations, it leaves the solver's compile more of the cores.
+@functools.partial(filter_jit_cpu, options=ONCE_PROGRAM)
 def _renoised(model, data, weight, old, new, r, jac, moved):
     """The residuals and Jacobian of a Gaussian fit's point (model `model` before
     clipping, residuals `r` and Jacobian `jac` under the clipping and noise `old`)
