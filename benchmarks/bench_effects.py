@@ -52,9 +52,12 @@ def _build_map(distance, accuracy):
 
 
 def whole_plan(scene):
-    """The plan of the whole image as one block, as `render_array` takes it."""
+    """The plan of the whole image as one block, as `render_array` takes it (a disk
+    scene's blocks hold a quarter of `chunk_samples`)."""
     cam = scene.camera
-    return jl.plan(scene, chunk_samples=cam.width * cam.height * cam.supersample**2 * 2)
+    plan = jl.plan(scene, chunk_samples=cam.width * cam.height * cam.supersample**2 * 8)
+    assert plan.blocks == 1, plan.reasons
+    return plan
 
 
 def lowered_text(scene):

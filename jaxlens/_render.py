@@ -13,6 +13,7 @@ and `grad` with respect to any array field of the scene.
 
 import contextlib
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -28,7 +29,7 @@ from ._raymap import RayMap, placeholder
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import compile_ahead, host_driver, is_concrete
+from ._util import RENDER_PROGRAM, compile_ahead, filter_jit_cpu, host_driver, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -73,7 +74,7 @@ def ray_maps(distances, accuracy: float, dtype) -> RayMap:
     return jax.tree.map(lambda *a: jax.device_put(np.concatenate(a)), *maps)
 
 
-@eqx.filter_jit
+@functools.partial(filter_jit_cpu, options=RENDER_PROGRAM)
 def _block(scene, plan, maps, row0, rows, pair):
     # vmap over the frames of the camera batch (and their ray maps) only. The scene's
     # values were `verify`ed on the host: no error callback, so the program can be
@@ -397,7 +398,7 @@ def block_memory(
     part = frame(scene, slice(0, p.frames))
     maps = _maps_for(part, p, dtype)
     lowered = _block.lower(part, p.kernel_key(), maps, jnp.asarray(0, dtype), p.rows, p.pair)
-    stats = lowered.compile().compiled.memory_analysis()
+    stats = lowered.compile().memory_analysis()
     return {
         "temp": int(stats.temp_size_in_bytes),
         "output": int(stats.output_size_in_bytes),
