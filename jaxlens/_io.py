@@ -56,10 +56,7 @@ def prepare_write(path) -> None:
     """Load what a first `write_image` to `path` needs (OpenImageIO, its plugin for the
     file's format, NumPy's transfer-function loops), without writing: 0.05-0.07 s of a
     first write, done while a render compiles (`_util.when_idle`)."""
-    oiio = _oiio()
-    out = oiio.ImageOutput.create(str(path))
-    if out is not None:
-        del out
+    _oiio().ImageOutput.create(str(path))  # loads the format's plugin; nothing opened
     to_display(np.zeros((1, 1, 3), np.float32))
 
 
