@@ -169,7 +169,7 @@ def launch(command: str, argv: list[str], processes: int, on_failure=None) -> in
     port = free_port()
     logs = Path(tempfile.mkdtemp(prefix="jaxlens-processes-"))
     done = logs / "done"
-    procs, files = [], []
+    procs, files, relay = [], [], None
     stop = threading.Event()
     try:
         for i in range(processes):
@@ -216,6 +216,10 @@ def launch(command: str, argv: list[str], processes: int, on_failure=None) -> in
     finally:  # also on Ctrl-C or SIGTERM (the caller says so): no process outlives this
         stop.set()
         _stop(procs)
+        if relay is not None:
+            # Process 0 has ended: its pipe reaches its end once the relay has copied
+            # its last words (a stopped process's) to the log, which is closed after.
+            relay.join(timeout=5.0)
         for f in files:
             f.close()
         for p in logs.iterdir():
