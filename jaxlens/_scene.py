@@ -187,9 +187,9 @@ def scene_keys_text() -> str:
         out = []
         for name, key in table.items():
             if key.default is None:
-                out.append(f"  {name}    # {key.valid}")
+                out.append(f"  {name}    # {key.text}")
             else:
-                out.append(f"  {name} = {toml(key.default)}    # {key.valid}")
+                out.append(f"  {name} = {toml(key.default)}    # {key.text}")
         return out or ["  (no keys)"]
 
     lines = ["# top level", *keys(TOP_KEYS)]

@@ -16,6 +16,7 @@ that one registration, in the file of its class.
 """
 
 import math
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -37,22 +38,53 @@ class Key(NamedTuple):
     """One key of a table: `kind` (`"float"`, `"int"`, `"bool"`, `"str"`, `"color"`: a
     number or 3 numbers, `"floats"`: a number or a list), `default` (`None`: no
     default, the key is absent unless given), `check` (a predicate on the coerced
-    value) and `valid` (what is valid, in words, with the unit)."""
+    value) and `valid` (what is valid, in words, with the unit). Messages use `text`:
+    `valid`, but for a whole number checked by a `Range` the range comes from the check."""
 
     kind: str
     default: Any
     check: Callable[[Any], bool]
     valid: str
 
+    @property
+    def text(self) -> str:
+        """What is valid, as messages and `--scene-keys` say it: for a whole number
+        checked by a `Range`, the range from the check itself (and the unit of `valid`,
+        its last parenthesis), so that the words cannot say another range."""
+        if self.kind != "int" or not isinstance(self.check, Range):
+            return self.valid
+        unit = re.search(r" \([^()]*\)$", self.valid)
+        return self.check.whole_numbers() + (unit.group() if unit else "")
+
+
+class Range(NamedTuple):
+    """Predicate `lo < v < hi` (`lo`, `hi`: `None` for no bound), that also says its
+    range in words, so that a key's message and `--scene-keys` give the range
+    that is checked."""
+
+    lo: float | None = None
+    hi: float | None = None
+
+    def __call__(self, v) -> bool:
+        return (self.lo is None or v > self.lo) and (self.hi is None or v < self.hi)
+
+    def whole_numbers(self) -> str:
+        """The whole numbers in the range, in words."""
+        lo = None if self.lo is None else math.floor(self.lo) + 1
+        hi = None if self.hi is None else math.ceil(self.hi) - 1
+        if lo is not None and hi is not None:
+            return f"a whole number from {lo} to {hi}"
+        return f"a whole number >= {lo}" if hi is None else f"a whole number <= {hi}"
+
 
 def greater(lo):
     """Predicate `v > lo`."""
-    return lambda v: v > lo
+    return Range(lo, None)
 
 
 def in_range(lo, hi):
     """Predicate `lo < v < hi`."""
-    return lambda v: lo < v < hi
+    return Range(lo, hi)
 
 
 def anything(v) -> bool:
@@ -60,9 +92,37 @@ def anything(v) -> bool:
     return True
 
 
+# Values in messages are cut to about this many characters: a list of a million
+# numbers or a path of megabytes would make an unreadable line.
+SHOWN_MAX = 200
+
+
+def cut(text: str, limit: int = SHOWN_MAX) -> str:
+    """`text` cut to its first `limit` characters, saying how long it was."""
+    text = str(text)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
 def describe(value) -> str:
-    """A value as an error message shows it."""
-    return repr(value) if not isinstance(value, str) else f'"{value}"'
+    """A value as an error message shows it: strings in double quotes, floats with all
+    their digits (`repr`: 179.99999999, not 180.0), and long strings, lists and tables
+    cut to their start and their length (at most about `SHOWN_MAX` characters)."""
+    if isinstance(value, str):
+        if len(value) > SHOWN_MAX:
+            return f'"{value[:SHOWN_MAX]}"... ({len(value)} characters)'
+        return f'"{value}"'
+    if isinstance(value, list):
+        if len(value) > 8:
+            first = ", ".join(cut(describe(v), 40) for v in value[:3])
+            return f"[{first}, ... {len(value)} items]"
+        return cut("[" + ", ".join(cut(describe(v), 40) for v in value) + "]")
+    if isinstance(value, dict):
+        items = [f"{cut(repr(k), 40)}: {cut(describe(v), 40)}" for k, v in list(value.items())[:8]]
+        more = f", ... {len(value)} keys" if len(value) > 8 else ""
+        return cut("{" + ", ".join(items) + more + "}")
+    if isinstance(value, int) and value.bit_length() > 600:  # `repr` stops at 4300 digits
+        return f"(an integer of about {round(value.bit_length() * math.log10(2))} digits)"
+    return cut(repr(value))
 
 
 # No number in a scene is larger in magnitude: radiances beyond it overflow float32
@@ -72,54 +132,60 @@ MAGNITUDE_MAX = 1e30
 
 
 def coerce(where: str, name: str, value, key: Key) -> Any:
-    """Check the type and range of one value; return it in its Python type."""
-    bad = ValueError(f"{where} {name} = {describe(value)} is not valid: expected {key.valid}")
+    """Check the type and range of one value; return it in its Python type. The error
+    names the table, the key (and the item of a list), the value and what is valid."""
 
-    def number(v):
+    def bad(v=value, at=""):
+        return ValueError(f"{where} {name}{at} = {describe(v)} is not valid: expected {key.text}")
+
+    def number(v, at=""):
         if isinstance(v, bool) or not isinstance(v, int | float):
-            raise bad
+            raise bad(v, at)
         try:
-            v = float(v)
+            f = float(v)
         except OverflowError:  # an integer beyond float range
-            raise bad from None
-        if not math.isfinite(v):
-            raise bad
-        if abs(v) > MAGNITUDE_MAX:
-            raise ValueError(f"{where} {name} = {describe(value)} is not valid: expected "
-                             f"{key.valid}, at most {MAGNITUDE_MAX:g} in magnitude")  # fmt: skip
-        return v
+            raise bad(v, at) from None
+        if not math.isfinite(f):
+            raise bad(v, at)
+        if abs(f) > MAGNITUDE_MAX:
+            raise ValueError(f"{where} {name}{at} = {describe(v)} is not valid: expected "
+                             f"{key.text}, at most {MAGNITUDE_MAX:g} in magnitude")  # fmt: skip
+        return f
+
+    def numbers(values):
+        return [number(x, f"[{i}]") for i, x in enumerate(values)]
 
     kind = key.kind
     if kind == "float":
         v = number(value)
     elif kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
-            raise bad
+            raise bad()
         v = value
     elif kind == "bool":
         if not isinstance(value, bool):
-            raise bad
+            raise bad()
         v = value
     elif kind == "str":
         if not isinstance(value, str):
-            raise bad
+            raise bad()
         v = value
     elif kind == "color":
         if isinstance(value, list):
             if len(value) != 3:
-                raise bad
-            return [number(x) for x in value]
+                raise bad()
+            return numbers(value)
         v = number(value)
     elif kind == "floats":
         if isinstance(value, list):
             if not value:
-                raise bad
-            return [number(x) for x in value]
+                raise bad()
+            return numbers(value)
         return number(value)
     else:  # pragma: no cover - schema error
         raise AssertionError(kind)
     if not key.check(v):
-        raise bad
+        raise bad()
     return v
 
 

@@ -147,7 +147,7 @@ def test_a_value_of_the_wrong_type_names_key_value_and_valid(kind, name):
     key = jl.scene_table_keys("sky", kind)[name]
     bad = _wrong_kind(key)
     shown = f'"{bad}"' if isinstance(bad, str) else repr(bad)
-    message = f"sky ({kind}) {name} = {shown} is not valid: expected {key.valid}"
+    message = f"sky ({kind}) {name} = {shown} is not valid: expected {key.text}"
     with pytest.raises(ValueError, match=re.escape(message)):
         # (image types need a path, else the first error is the missing path)
         path = {"path": "p.png"} if "path" in jl.scene_table_keys("sky", kind) else {}
@@ -222,10 +222,21 @@ def test_a_value_of_the_wrong_type_names_key_value_and_valid(kind, name):
             dict(type="plane", path="p.png", width_deg=3.0, size=3.0, plane_distance=3.0),
             "give width_deg or size and plane_distance, not both",
         ),
-        (dict(type="checker", n_lon=0), "n_lon = 0 is not valid: expected a whole number >= 1"),
+        (
+            dict(type="checker", n_lon=0),
+            "n_lon = 0 is not valid: expected a whole number from 1 to 100000",
+        ),
         (
             dict(type="checker", n_lat=100001),
-            "n_lat = 100001 is not valid: expected a whole number >= 1",
+            "n_lat = 100001 is not valid: expected a whole number from 1 to 100000",
+        ),
+        (
+            dict(type="stars", seed=-1),
+            "sky (stars) seed = -1 is not valid: expected a whole number >= 0",
+        ),
+        (
+            dict(type="stars", lon_deg=[1.0] * 99 + [math.inf], lat_deg=[0.0] * 100),
+            "sky (stars) lon_deg[99] = inf is not valid: expected a list of finite numbers",
         ),
         (dict(type="default", stars="yes"), 'stars = "yes" is not valid: expected true or false'),
         (

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _schema
-from .._schema import Key, anything, in_range
+from .._schema import Key, anything, greater, in_range
 from ._base import AbstractSky, direction_from_angles
 
 ORIENTATION = {
@@ -32,7 +32,7 @@ def star_list_keys(sigma_deg: float) -> dict:
             "float", sigma_deg, in_range(0.0, 180.0), "a number in (0, 180) (degrees)"
         ),
         "count": Key("int", 200, in_range(0, 100001), "a whole number from 1 to 100000"),
-        "seed": Key("int", 0, anything, "a whole number"),
+        "seed": Key("int", 0, greater(-1), "a whole number >= 0"),  # numpy's seeds
         "lon_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
         "lat_deg": Key("floats", None, anything, "a list of finite numbers (degrees)"),
     }
