@@ -122,6 +122,7 @@ def validate(data: dict, *, source: str = "scene") -> dict:
     `motion`, `redshift`, `disk` tables present). Raises `ValueError` naming the
     table, the key, the value and what is valid.
     """
+    source = _schema.cut(source)  # (a file's path, named in every message)
     if not isinstance(data, dict):
         raise ValueError(f"{source}: a scene must be a table of keys")
     tables = {"camera": CAMERA_KEYS, "output": OUTPUT_KEYS, "animation": ANIMATION_KEYS}
@@ -209,24 +210,42 @@ def scene_keys_text() -> str:
     return "\n".join(lines)
 
 
+# The largest scene file read. A scene is a few dozen keys; what makes one large is
+# a table of stars, whose lists (lon_deg, lat_deg, brightness, temperature) take
+# about 4 x 12 bytes a star at 8 digits: 1 MiB holds some 20,000 stars (the 9,110 of
+# the Yale Bright Star Catalogue twice over). Larger star sets belong in a panorama.
+# The bound keeps `/dev/zero` or a wrong file from filling memory.
+SCENE_FILE_MAX = 1 << 20
+
+
 def read_scene_file(path) -> dict:
     """Parse a TOML scene file (no validation); paths inside are taken relative to
-    the file's folder. Raises `ValueError` naming the file for unreadable files and
-    TOML syntax errors."""
+    the file's folder. At most `SCENE_FILE_MAX` bytes (1 MiB) are read: a larger file
+    (or an endless one, such as `/dev/zero`) is refused. Raises `ValueError` naming
+    the file for unreadable, too large or not UTF-8 files and TOML syntax errors."""
     path = Path(path)
+    name = _schema.cut(repr(str(path)))
     try:
         with open(path, "rb") as f:
-            data = tomllib.load(f)
+            raw = f.read(SCENE_FILE_MAX + 1)
     except FileNotFoundError:
-        raise ValueError(f"scene file {str(path)!r} does not exist") from None
+        raise ValueError(f"scene file {name} does not exist") from None
     except IsADirectoryError:
-        raise ValueError(f"scene file {str(path)!r} is a folder") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"scene file {str(path)!r} is not valid TOML: {e}") from None
+        raise ValueError(f"scene file {name} is a folder") from None
+    except OSError as e:
+        raise ValueError(f"scene file {name} cannot be read: {e.strerror or e}") from None
+    if len(raw) > SCENE_FILE_MAX:
+        raise ValueError(f"scene file {name} is larger than {SCENE_FILE_MAX >> 20} MiB, the "
+                         "most a scene file may hold (large star tables belong in a panorama "
+                         "image)")  # fmt: skip
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
     except UnicodeDecodeError:
-        raise ValueError(f"scene file {str(path)!r} is not a UTF-8 text file") from None
+        raise ValueError(f"scene file {name} is not a UTF-8 text file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"scene file {name} is not valid TOML: {e}") from None
     except RecursionError:
-        raise ValueError(f"scene file {str(path)!r} nests its tables too deeply") from None
+        raise ValueError(f"scene file {name} nests its tables too deeply") from None
     layers = data.get("sky")
     if isinstance(layers, dict):  # a single [sky] table: one layer
         layers = data["sky"] = [layers]
@@ -234,7 +253,7 @@ def read_scene_file(path) -> dict:
         for i, layer in enumerate(layers):
             if isinstance(layer, dict):
                 if "_base" in layer:
-                    raise ValueError(f"scene file {str(path)!r}: [[sky]] #{i + 1} has an unknown "
+                    raise ValueError(f"scene file {name}: [[sky]] #{i + 1} has an unknown "
                                      "key '_base'")  # fmt: skip
                 layer["_base"] = str(path.parent)  # paths relative to the file's folder
     return data

@@ -31,12 +31,25 @@ class _Parser(argparse.ArgumentParser):
     """argparse, but a usage error is one line (the usage text stays in --help)."""
 
     def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see --help)\n")
+
+
+# The longest error line printed, and the longest word in it: a value echoed whole (a
+# path of megabytes, a list of a million numbers) is cut to its start and its length.
+LINE_MAX = 1000
+WORD_MAX = 200
 
 
 def one_line(text: str) -> str:
-    """A message on one line: whitespace runs (newlines too) become one space."""
-    return " ".join(str(text).split())
+    """A message on one line: whitespace runs (newlines too) become one space, a word
+    longer than `WORD_MAX` characters is cut to its start and its length, and a line
+    longer than `LINE_MAX` to its start and its end."""
+    words = (w if len(w) <= WORD_MAX else f"{w[:WORD_MAX]}... ({len(w)} characters)"
+             for w in str(text).split())  # fmt: skip
+    line = " ".join(words)
+    if len(line) > LINE_MAX:
+        line = f"{line[: LINE_MAX - 300]} ... ({len(line)} characters) ... {line[-250:]}"
+    return line
 
 
 def status(text: str) -> None:
