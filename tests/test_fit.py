@@ -8,6 +8,7 @@ compiled fit programs are reused across tests.
 import json
 import math
 import re
+import warnings
 
 import equinox as eqx
 import jax
@@ -731,3 +732,21 @@ def test_host_drivers_under_a_trace_say_what_to_call(call):
          "find_arcs": lambda im: jl.find_arcs(im).x_c}[call]  # fmt: skip
     with pytest.raises(TypeError, match=f"jaxlens.{call} runs on the host"):
         jax.jit(f)(img)
+
+
+@pytest.mark.parametrize("call", ["fit_ring", "fit", "find_arcs"])
+@pytest.mark.parametrize("kind", ["complex", "bool", "object"])
+def test_images_of_values_that_are_not_real_numbers_are_refused(call, kind):
+    # A complex image was cast to its real part with a ComplexWarning: fit_ring then
+    # said "blank (every pixel is 1)". Refused by its dtype, before any fitting.
+    img = np.random.default_rng(0).random((H, W))
+    img = {"complex": img * (1.0 + 1.0j), "bool": img > 0.1,
+           "object": img.astype(object)}[kind]  # fmt: skip
+    scene = jl.Scene(Camera(20.0, 1.0, W, H), GaussianStar(0.02) + Uniform(0.0))
+    f = {"fit_ring": lambda: jl.fit_ring(img, star_sigma=0.02),
+         "fit": lambda: jl.fit(scene, img),
+         "find_arcs": lambda: jl.find_arcs(img)}[call]  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way
+        with pytest.raises(TypeError, match=rf"of dtype {img.dtype} is not valid: expected real"):
+            f()

@@ -488,7 +488,9 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
     under `jit`, `vmap` or `grad` (it runs on the host).
     """
     host_driver("find_arcs", "call it on the image's values, outside the trace", img)
-    a = np.asarray(img, dtype=np.float64)
+    from .pixels import real_image
+
+    a = real_image(img, "img")
     if a.ndim == 3:
         a = a.mean(axis=-1)
     if a.ndim != 2 or min(a.shape) < 8:

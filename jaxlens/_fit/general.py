@@ -258,7 +258,7 @@ def _load(image):
     array)."""
     from pathlib import Path
 
-    from .pixels import read_observation_transfer
+    from .pixels import read_observation_transfer, real_image
 
     fits, transfer = None, None
     if isinstance(image, (str, Path)):
@@ -270,7 +270,7 @@ def _load(image):
         else:
             img, transfer = read_observation_transfer(image)
     else:
-        img = np.asarray(image, np.float64)
+        img = real_image(image)
     if img.ndim == 3:
         img = img.mean(axis=-1)
     if img.ndim != 2 or min(img.shape) < 8:

@@ -41,13 +41,24 @@ def read_observation_transfer(path) -> tuple[np.ndarray, str]:
     return grey.mean(axis=-1), transfer
 
 
+def real_image(image, name: str = "image") -> np.ndarray:
+    """`image` as a float64 NumPy array, after checking that it holds real numbers:
+    a complex, boolean, string or object array is a `TypeError` naming its dtype
+    (NumPy would drop an imaginary part with only a warning)."""
+    a = image if isinstance(image, np.ndarray) else np.asarray(image)
+    if a.dtype.kind not in "iuf":
+        raise TypeError(f"{name} of dtype {a.dtype} is not valid: expected real numbers "
+                        "(an integer or floating-point array)")  # fmt: skip
+    return np.asarray(a, np.float64)
+
+
 def _as_gray(image) -> tuple[np.ndarray, str | None]:
     """`(img, transfer)`: a ring fit's image as float64 `(H, W)`, checked, and how a
     file's values were read (`read_observation_transfer`; `None` for an array)."""
     transfer = None
     if isinstance(image, (str, Path)):
         image, transfer = read_observation_transfer(image)
-    img = np.asarray(image, dtype=np.float64)
+    img = real_image(image)
     if img.ndim == 3:
         img = img.mean(axis=-1)
     if img.ndim != 2:
