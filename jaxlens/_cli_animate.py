@@ -36,8 +36,10 @@ def register(sub):
     p.add_argument("--stop", type=float, help="last value of the path")
     p.add_argument("--fps", type=float, help="frames a second of the GIF or MP4 (default 12)")
     p.add_argument("--frames-dir", help="also write each frame as an image file into this "
-                   "folder (made if missing; frame_0000.png, ...; earlier frame_*.* files "
-                   "there are replaced)")  # fmt: skip
+                   "folder (made if missing; frame_0000.png, ...). The frames an earlier run "
+                   "wrote there, as recorded in its hidden .jaxlens-frames.json, are replaced "
+                   "or removed; other files are never touched, and one with a new frame's "
+                   "name is an error")  # fmt: skip
     p.add_argument("--frame-format", choices=FRAME_FORMATS, default="png",
                    help="file format of the frames (default png)")  # fmt: skip
     p.set_defaults(run=run, kept=kept_frames)

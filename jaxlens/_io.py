@@ -2,24 +2,36 @@
 PyAV (the optional `video` extra): plain Python at the edges, never jitted.
 
 Every file is written atomically: to a hidden temporary file in the destination
-folder, which is renamed over the destination (`os.replace`) only once it is complete,
-and removed on any failure, Ctrl-C included. A reader never sees a half-written file.
-A process killed outright (SIGKILL, power loss) cannot remove its temporary file: the
-name, `.NAME.jaxlens-tmp.HOST.PID.RANDOM.EXT`, says whose it was, and the next write
-to the same destination (or `jaxlens clean FOLDER`) removes those of processes of this
-host that no longer run.
+folder, which is flushed to the disk (`fsync`) and renamed over the destination
+(`os.replace`) only once it is complete, and removed on any failure, Ctrl-C included.
+A reader never sees a half-written file, and a full disk leaves the old file as it was
+("no space left on device writing NAME"). Every write is checked: images are encoded
+in memory (Linux) and copied to the disk with checked writes, GIFs are read back to
+their last byte, video errors come from FFmpeg.
+
+While it writes, a process holds an advisory lock (`flock`) on its temporary file. A
+process killed outright (SIGKILL, power loss) cannot remove its temporary file: the
+name, `.NAME.jaxlens-tmp.HOST.PID.RANDOM.EXT`, says what it was, and the next write to
+the same destination (or `jaxlens clean FOLDER`) removes those of this host's name
+whose lock no process holds, whatever the PID says (a container's processes have ids
+of their own).
 """
 
 import contextlib
+import errno
+import fcntl
 import fractions
 import glob
 import io
 import itertools
-import math
+import json
+import mmap
 import os
 import re
+import resource
 import shutil
 import socket
+import sys
 import tempfile
 from pathlib import Path
 
@@ -80,12 +92,52 @@ def srgb_decode(encoded: np.ndarray, dtype=np.float32) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(dtype)
 
 
+# Exposures in stops, -100 < exposure < 100: 2^100 keeps float32 pixels finite (2^128
+# is their largest power of two). Scene files and the command line accept the same.
+EXPOSURE_MAX = 100.0
+
+
+def check_exposure(exposure) -> float:
+    """`exposure` (stops) as a float: `ValueError` unless a finite real number in
+    (-EXPOSURE_MAX, EXPOSURE_MAX) = (-100, 100), `TypeError` for a string or complex."""
+    valid = f"expected a number of stops in ({-EXPOSURE_MAX:g}, {EXPOSURE_MAX:g})"
+    if isinstance(exposure, (str, bytes)) or np.iscomplexobj(exposure):
+        raise TypeError(f"exposure={_shown_value(exposure)} is not valid: {valid}")
+    try:
+        x = float(exposure)
+    except (TypeError, ValueError):
+        raise TypeError(f"exposure={_shown_value(exposure)} is not valid: {valid}") from None
+    if not -EXPOSURE_MAX < x < EXPOSURE_MAX:  # NaN too
+        raise ValueError(f"exposure={_shown_value(exposure)} is not valid: {valid}")
+    return x
+
+
+def _shown_value(value) -> str:
+    """`repr(value)` cut to a readable length."""
+    text = repr(value)
+    return text if len(text) <= 200 else f"{text[:200]}... ({len(text)} characters)"
+
+
+def _check_real(array: np.ndarray, what: str) -> np.ndarray:
+    """`array` unless its values are not real numbers (complex, object, strings, bool):
+    then `ValueError` naming its dtype."""
+    if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
+        raise ValueError(f"{what} of dtype {array.dtype} is not valid: expected real numbers "
+                         "(an integer or floating-point array)")  # fmt: skip
+    return array
+
+
 def to_display(image: np.ndarray, *, exposure: float = 0.0) -> np.ndarray:
     """Linear radiance to 8-bit sRGB for display: scale by $2^{exposure}$, clip, encode.
 
-    **Returns:** `uint8` array of the same shape.
+    **Arguments:** `image`: linear radiance, real numbers of any shape; `exposure`:
+    stops, in (-100, 100).
+
+    **Returns:** `uint8` array of the same shape. Raises `ValueError` for an exposure out
+    of range or an image that is not real numbers (complex, object).
     """
-    img = np.asarray(image)
+    exposure = check_exposure(exposure)
+    img = _check_real(np.asarray(image), "image")
     out = np.empty(img.shape, np.uint8)
     src, dst = img.reshape(-1), out.reshape(-1)  # views of contiguous arrays
     scale = np.float32(2.0**exposure)
@@ -98,20 +150,80 @@ def to_display(image: np.ndarray, *, exposure: float = 0.0) -> np.ndarray:
     return out
 
 
-def available_memory() -> int | None:
-    """Bytes of memory the system can give a process now (Linux `MemAvailable`; else
-    the physical memory), `None` where neither is known."""
+def _first_int(path, key: str | None = None) -> int | None:
+    """The number in a small system file (`key`'s value where given: the first number
+    after `key` on its line); `None` where there is none (or "max")."""
     try:
-        with open("/proc/meminfo") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                words = line.split()
+                if key is None or (words and words[0] == key):
+                    return int(words[0 if key is None else 1])
     except (OSError, ValueError, IndexError):
         pass
+    return None
+
+
+def _cgroup_memory_left() -> int | None:
+    """Bytes the process's cgroup may still take: its memory limit less what it uses,
+    page cache that can be dropped not counted as used (the least over the group and
+    those above it, cgroup v2; v1's memory controller), `None` without a limit."""
+    lefts = []
     try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
+        with open("/proc/self/cgroup") as f:
+            groups = dict(line.rstrip("\n").split(":", 2)[1:] for line in f if line.count(":") >= 2)
+    except (OSError, ValueError):
+        groups = {}
+    for root, ctrl, limit, usage, cache in (
+        ("/sys/fs/cgroup", "", "memory.max", "memory.current", "inactive_file"),
+        ("/sys/fs/cgroup/memory", "memory", "memory.limit_in_bytes", "memory.usage_in_bytes",
+         "total_inactive_file"),
+    ):  # fmt: skip
+        if ctrl not in groups and not os.path.exists(f"{root}/{limit}"):
+            continue
+        folder = Path(root + groups.get(ctrl, "/"))
+        for d in (folder, *folder.parents):
+            if len(d.parts) < len(Path(root).parts):
+                break
+            cap = _first_int(d / limit)
+            if cap is not None and cap < 1 << 60:  # v1 writes "no limit" as ~2^63
+                used = _first_int(d / usage) or 0
+                used -= _first_int(d / "memory.stat", cache) or 0
+                lefts.append(max(cap - max(used, 0), 0))
+    return min(lefts, default=None)
+
+
+def memory_limit() -> tuple[int, str] | None:
+    """The bytes of memory this process can still take, and what limits it: the least
+    of the memory the system has available (Linux `MemAvailable`; else the physical
+    memory), the address-space limit (`ulimit -v`, `RLIMIT_AS`) and the data limit
+    (`RLIMIT_DATA`) less what the process has mapped, and its cgroup's limit less what
+    the group uses (a container's). `None` where none is known."""
+    found = []
+    avail = _first_int("/proc/meminfo", "MemAvailable:")
+    if avail is not None:
+        found.append((avail * 1024, "available memory"))
+    else:
+        with contextlib.suppress(ValueError, OSError, AttributeError):
+            found.append((os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"),
+                          "physical memory"))  # fmt: skip
+    for which, used, name in ((resource.RLIMIT_AS, "VmSize:", "address-space limit"),
+                              (resource.RLIMIT_DATA, "VmData:", "data-size limit")):  # fmt: skip
+        soft = resource.getrlimit(which)[0]
+        if soft != resource.RLIM_INFINITY:
+            mapped = (_first_int("/proc/self/status", used) or 0) * 1024
+            found.append((max(soft - mapped, 0), name))
+    left = _cgroup_memory_left()
+    if left is not None:
+        found.append((left, "cgroup memory limit"))
+    return min(found) if found else None
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this process can still take (`memory_limit`), `None` where that
+    is not known."""
+    limit = memory_limit()
+    return None if limit is None else limit[0]
 
 
 # What a render needs besides its float32 output: the compiled block's workspace
@@ -120,12 +232,15 @@ RENDER_WORKSPACE = 512 << 20
 
 
 def _check_memory(need: int, what: str, advice: str = "") -> None:
-    """`ValueError` "`what` about N GiB and M GiB is available`advice`" when `need`
-    bytes exceed `available_memory()` (not checked where that is unknown)."""
+    """`ValueError` "`what` about N GiB, and this process can take M GiB (WHY)`advice`"
+    when `need` bytes exceed `available_memory()` (not checked where that is unknown;
+    WHY: the limit that decides, `memory_limit`)."""
     have = available_memory()
     if have is not None and need > have:
-        raise ValueError(f"{what} about {need / 2**30:.1f} GiB and {have / 2**30:.1f} GiB is "
-                         f"available{advice}")  # fmt: skip
+        limit = memory_limit()
+        why = limit[1] if limit is not None and limit[0] == have else "available memory"
+        raise ValueError(f"{what} about {need / 2**30:.1f} GiB, and this process can take "
+                         f"{have / 2**30:.1f} GiB ({why}){advice}")  # fmt: skip
 
 
 def check_render_memory(width: int, height: int, frames: int = 1) -> None:
@@ -171,65 +286,168 @@ def _umask() -> int:
 
 
 _TMP_TAG = ".jaxlens-tmp."
+_NEW_TAG = ".jaxlens-new."  # a temporary's name until its lock is held
 
 
 def _host() -> str:
     return "".join(c if c.isalnum() or c == "-" else "-" for c in socket.gethostname()) or "-"
 
 
-def _running(pid: int) -> bool:
+def _locked(path: Path) -> bool:
+    """Whether a process holds the advisory lock (`flock`) of `path`, a file or folder
+    (one that cannot be opened counts as locked: it is left alone)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # exists, owned by another user
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+    except OSError:
         return True
-    return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # BlockingIOError: held by a writer
+        return True
+    finally:
+        os.close(fd)  # (and with it the lock just taken)
+    return False
 
 
 def stale_temporaries(folder, stem: str | None = None) -> list[Path]:
-    """This library's temporary files in `folder` (of destination stem `stem`, if given)
-    left by processes of this host that no longer run."""
+    """This library's temporary files and frame folders in `folder` (of destination stem
+    `stem`, if given) that no process is writing: a writer holds an advisory lock
+    (`flock`) on its temporary while it writes, so one whose lock is free is stale,
+    whatever the process id in its name says (a render in a container, another PID
+    namespace, has the same host name and ids of its own). Only those named for this
+    host: a lock need not reach other hosts on a network file system."""
     host = _host()
     out = []
     pattern = f".{glob.escape(stem) if stem is not None else '*'}{_TMP_TAG}{host}.*"
     for p in Path(folder).glob(pattern):
         parts = p.name.rsplit(_TMP_TAG, 1)[1].split(".")
-        if len(parts) >= 3 and parts[0] == host and parts[1].isdigit():
-            if int(parts[1]) != os.getpid() and not _running(int(parts[1])):
-                out.append(p)
+        if len(parts) >= 3 and parts[0] == host and parts[1].isdigit() and not _locked(p):
+            out.append(p)
     return sorted(out)
 
 
-def remove_temporary(path: Path) -> None:
-    """Remove a temporary file, or a temporary folder of frames, quietly."""
-    with contextlib.suppress(OSError):
+def remove_temporary(path: Path, *, quiet: bool = True) -> None:
+    """Remove a temporary file, or a temporary folder of frames; an `OSError` (a
+    read-only folder) is ignored unless `quiet=False`."""
+    try:
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
         else:
             path.unlink()
+    except FileNotFoundError:
+        pass
+    except OSError:
+        if not quiet:
+            raise
+
+
+def _locked_temporary(folder: Path, stem: str, suffix: str, directory: bool = False):
+    """A new temporary file (or folder) `.STEM.jaxlens-tmp.HOST.PID.RANDOM SUFFIX` in
+    `folder`, locked (`flock`) from before it has that name, so that no `clean` takes
+    it for a killed process's. **Returns:** `(fd, path)`: the lock is held until `fd` is
+    closed."""
+    prefix = f".{stem}{_NEW_TAG}"
+    if directory:
+        new = tempfile.mkdtemp(prefix=prefix, suffix=suffix, dir=folder)
+        fd = os.open(new, os.O_RDONLY)
+    else:
+        fd, new = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        rest = Path(new).name[len(prefix) :]  # RANDOM SUFFIX
+        path = Path(folder) / f".{stem}{_TMP_TAG}{_host()}.{os.getpid()}.{rest}"
+        os.rename(new, path)
+    except BaseException:
+        os.close(fd)
+        remove_temporary(Path(new))
+        raise
+    return fd, path
+
+
+def _write_failure(path, e: OSError) -> OSError:
+    """An error of a write to `path` as a user reads it: "no space left on device
+    writing PATH" (the `errno` kept) for a full disk or quota; others as they are."""
+    reason = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
+              errno.EFBIG: "file too large for the file system"}.get(e.errno)  # fmt: skip
+    if reason is None:
+        return e
+    err = OSError(f"{reason} writing {_shown(path)}")
+    err.errno = e.errno
+    return err
+
+
+def _shown(path) -> str:
+    """A path as messages show it: quoted, and cut to a readable length."""
+    return _shown_value(str(path))
 
 
 @contextlib.contextmanager
 def atomic_output(path):
-    """Context manager: yields a temporary path beside `path`; on a normal exit it
-    is renamed to `path`, on any exception (KeyboardInterrupt too) it is removed.
-    Temporaries of `path` left by killed processes are removed first."""
+    """Context manager: yields a temporary path beside `path`, locked (`flock`) while
+    the block runs; on a normal exit the file is flushed to the disk (`fsync`) and
+    renamed to `path`, on any exception (KeyboardInterrupt too) it is removed and `path`
+    is as it was. Temporaries of `path` that no process holds are removed first.
+    A full disk raises `OSError` "no space left on device writing PATH"."""
     path = Path(path)
     for stale in stale_temporaries(path.parent, path.stem):
         remove_temporary(stale)
-    prefix = f".{path.stem}{_TMP_TAG}{_host()}.{os.getpid()}."
-    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=path.suffix, dir=path.parent)
-    os.close(fd)
+    fd, tmp = _locked_temporary(path.parent, path.stem, path.suffix)
     try:
-        yield tmp
+        yield str(tmp)
         # mkstemp makes the file private (0600); give it the mode a plain open() would.
         os.chmod(tmp, 0o666 & ~_umask())
+        _fsync(tmp)  # the data on the disk before the name: never a renamed empty file
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as e:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        failure = _write_failure(path, e) if isinstance(e, OSError) else e
+        if failure is not e:
+            raise failure from e
         raise
+    finally:
+        os.close(fd)
+
+
+def _fsync(path) -> None:
+    """Flush a file's data to the disk (a write error the disk reports only now, too)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _copy_in(src: int, path) -> None:
+    """Write the bytes of the file `src` (a descriptor) to `path`, every write checked."""
+    size, done = os.fstat(src).st_size, 0
+    fd = os.open(path, os.O_WRONLY | os.O_TRUNC)
+    try:
+        while done < size:
+            n = os.sendfile(fd, src, done, min(size - done, 1 << 30))
+            if n == 0:  # (never for a regular file: an error is raised)
+                raise OSError(errno.EIO, f"short write to {_shown(path)}")
+            done += n
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _encoded_in_memory(path):
+    """Context manager for a native writer that does not report every failed write
+    (libpng's and libjpeg's, through OpenImageIO: a full disk left a truncated PNG and
+    "success"; libjpeg ends the process): yields a file name to give the writer, in
+    memory (Linux `memfd`), whose bytes are then written to `path` with checked
+    writes. Where there is no `memfd`, yields `path` itself."""
+    if not hasattr(os, "memfd_create") or not os.path.isdir("/proc/self/fd"):
+        yield str(path)
+        return
+    fd = os.memfd_create("jaxlens-image")
+    try:
+        yield f"/proc/self/fd/{fd}"
+        _copy_in(fd, path)
+    finally:
+        os.close(fd)
 
 
 def _for_format(img: np.ndarray, ext: str) -> np.ndarray:
@@ -254,9 +472,12 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     Never leaves a half-written file, also when interrupted.
 
     **Arguments:** `path` (its extension picks the format); `image`: `(H, W)` or
-    `(H, W, C)` linear radiance with 1 to 4 channels; `exposure`: stops (PNG/JPEG).
+    `(H, W, C)` linear radiance with 1 to 4 channels, real numbers; `exposure`: stops,
+    in (-100, 100) (applied to PNG/JPEG).
 
-    **Returns:** the path written. Raises `ValueError` for an unusable path or image.
+    **Returns:** the path written. Raises `ValueError` for an unusable path, image or
+    exposure, `OSError` when the file cannot be written ("no space left on device
+    writing PATH"): the file at `path`, if any, is then as it was.
     """
     oiio = _oiio()
     path = check_output_path(path)
@@ -265,13 +486,12 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
         raise ValueError(f"{str(path)!r}: write GIF animations with write_gif")
     if ext == ".mp4":
         raise ValueError(f"{str(path)!r}: write MP4 videos with write_video")
-    img = np.asarray(image, np.float32)
+    exposure = check_exposure(exposure)
+    img = _check_real(np.asarray(image), "image").astype(np.float32, copy=False)
     if img.ndim == 2:
         img = img[..., None]
     if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4) or min(img.shape[:2]) < 1:
         raise ValueError(f"image of shape {img.shape} is not (H, W) or (H, W, 1..4)")
-    if not np.isfinite(exposure):
-        raise ValueError(f"exposure={exposure!r} must be finite (stops)")
     img = _for_format(img, ext)
     c = img.shape[-1]
     alpha = c in (2, 4)
@@ -301,14 +521,18 @@ def write_image(path, image: np.ndarray, *, exposure: float = 0.0) -> Path:
     # not of all five: its encoding 27 ms instead of 36 ms, the file as large.
     spec.attribute("png:compressionLevel", 3)
     spec.attribute("png:filter", _PNG_SUB | _PNG_UP)
-    with atomic_output(path) as tmp:
-        out = oiio.ImageOutput.create(tmp)
+    with atomic_output(path) as tmp, _encoded_in_memory(tmp) as name:
+        out = oiio.ImageOutput.create(tmp)  # the plugin of the file name's extension
         if out is None:
             raise ValueError(f"cannot write images of type {ext!r}: {oiio.geterror()}")
-        ok = out.open(tmp, spec) and out.write_image(data)
-        ok = out.close() and ok
+        ok = out.open(name, spec) and out.write_image(data)
+        # A failed write may be reported only here (libpng's: "success" and a message);
+        # after `close` TIFF always reports a harmless one about its Exif data.
+        error = out.geterror()
+        ok = out.close() and ok and not error
         if not ok:
-            raise OSError(f"writing {str(path)!r} failed: {out.geterror() or oiio.geterror()}")
+            error = " ".join((error or out.geterror() or oiio.geterror()).split())
+            raise OSError(f"writing {_shown(path)} failed: {error[:500]}")
     return path
 
 
@@ -329,14 +553,49 @@ def check_fps(fps, video: bool) -> None:
 
 _FRAME_NAME = re.compile(r"frame_[0-9]{4,}\.(png|jpg|exr|hdr)")
 
+# The record of the frame files jaxlens wrote in a frames folder: only those are ever
+# replaced or removed there, never a file whose name merely looks like a frame's.
+FRAMES_MANIFEST = ".jaxlens-frames.json"
+
+
+def _recorded_frames(folder: Path) -> set[str]:
+    """The names of the frame files the last run recorded writing in `folder` (none
+    where there is no readable record; only plain frame names: `frame_NNNN.EXT`)."""
+    try:
+        names = json.loads((folder / FRAMES_MANIFEST).read_text())["frames"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return set()
+    if not isinstance(names, list):
+        return set()
+    return {n for n in names if isinstance(n, str) and _FRAME_NAME.fullmatch(n)}
+
+
+def _record_frames(folder: Path, names) -> None:
+    with atomic_output(folder / FRAMES_MANIFEST) as tmp, open(tmp, "w") as f:
+        json.dump({"written_by": "jaxlens", "frames": sorted(names)}, f, indent=0)
+
+
+def _check_not_users(folder: Path, name: str, ours: set[str]) -> None:
+    if name not in ours and os.path.lexists(folder / name):
+        raise ValueError(f"frames folder {_shown(folder)} has a file {name!r} that jaxlens did "
+                         f"not write there (it is not in its {FRAMES_MANIFEST}); it is left "
+                         "as it is and nothing was written: move it away or choose another "
+                         "folder")  # fmt: skip
+
 
 @contextlib.contextmanager
 def frame_folder(folder, fmt: str = "png"):
     """Context manager for an animation's frame files: yields `save(i, image, *,
-    exposure)`. Frames go to a hidden folder inside `folder` and are moved in only when
-    the block ends normally, replacing the `frame_NNNN.*` files of an earlier run (none
-    of theirs is left beside the new ones); on any exception, Ctrl-C included, the new
-    frames are removed and `folder` is as it was. `folder=None`: `save` does nothing.
+    exposure)`, which writes `frame_NNNN.FMT` (`i` as NNNN; FMT: png, jpg, exr, hdr).
+
+    Frames go to a hidden folder inside `folder` (locked while it is written) and are
+    moved in only when the block ends normally. The names written are recorded in
+    `folder`'s hidden `.jaxlens-frames.json`: the frames an earlier run recorded there
+    are replaced, and those of them this run does not write again are removed; no other
+    file is ever touched. A file of a new frame's name that jaxlens did not write (not
+    in the record) is an error (`ValueError` naming it; nothing is written). On any
+    exception, Ctrl-C included, the new frames are removed and `folder` is as it was.
+    `folder=None`: `save` does nothing.
     """
     if folder is None:
         yield lambda i, image, *, exposure=0.0: None
@@ -344,30 +603,38 @@ def frame_folder(folder, fmt: str = "png"):
     folder = Path(folder)
     made = not folder.exists()
     folder.mkdir(exist_ok=True)
-    staging = None
+    staging = lock = None
     try:
         check_output_path(folder / f"frame_0000.{fmt}")
+        ours = _recorded_frames(folder)
         for stale in stale_temporaries(folder, "frames"):
             remove_temporary(stale)
-        prefix = f".frames{_TMP_TAG}{_host()}.{os.getpid()}."
-        staging = Path(tempfile.mkdtemp(prefix=prefix, dir=folder))
+        lock, staging = _locked_temporary(folder, "frames", "", directory=True)
         names = []
 
         def save(i, image, *, exposure=0.0):
-            names.append(f"frame_{i:04d}.{fmt}")
-            write_image(staging / names[-1], image, exposure=exposure)
+            name = f"frame_{i:04d}.{fmt}"
+            _check_not_users(folder, name, ours)
+            names.append(name)
+            write_image(staging / name, image, exposure=exposure)
 
         yield save
+        for name in names:  # (one may have come since its frame was rendered)
+            _check_not_users(folder, name, ours)
+        # The record lists the earlier frames and the new ones until the earlier are
+        # gone: a run killed on the way leaves nothing of its own unrecorded.
+        _record_frames(folder, ours | set(names))
         for name in names:
             os.replace(staging / name, folder / name)
-        keep = set(names)
-        for old in folder.iterdir():
-            if _FRAME_NAME.fullmatch(old.name) and old.name not in keep:
-                old.unlink(missing_ok=True)
+        for old in sorted(ours - set(names)):
+            (folder / old).unlink(missing_ok=True)
+        _record_frames(folder, names)
         made = False
     finally:
         if staging is not None:
             remove_temporary(staging)
+        if lock is not None:
+            os.close(lock)
         if made:
             with contextlib.suppress(OSError):
                 folder.rmdir()
@@ -394,9 +661,7 @@ def _frames(frames):
 
 
 def _check_frame(frame, shape=None) -> np.ndarray:
-    f = np.asarray(frame)
-    if not np.issubdtype(f.dtype, np.number) or np.iscomplexobj(f):
-        raise ValueError(f"frames of dtype {f.dtype} are not real numbers")
+    f = _check_real(np.asarray(frame), "frames")
     if f.ndim != 3 or f.shape[-1] != 3 or min(f.shape) < 1:
         raise ValueError(f"a frame of shape {f.shape} is not (H, W, 3) with H, W >= 1")
     if shape is not None and f.shape != shape:
@@ -420,17 +685,21 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
     **Arguments:** `path` (.gif); `frames`: `(N, H, W, 3)` linear radiance, or an
     iterable of `(H, W, 3)` frames; `exposure` (stops); `fps`: frames a second
     (GIF keeps a frame's time in whole centiseconds, at least 2); `loop`: 0 loops
-    forever, else the number of plays.
+    forever, else the number of plays, up to 65535 (a 16-bit field).
 
     **Returns:** the path written. Raises `ValueError` for an unusable path, frames,
-    exposure or fps. Never leaves a half-written file, also when interrupted.
+    exposure (stops, in (-100, 100)), fps or loop, `OSError` when the file cannot be
+    written (a full disk: "no space left on device writing PATH"; the old file, if
+    any, is then as it was). Never leaves a half-written file, also when interrupted.
     """
     path = check_output_path(path)
     if path.suffix.lower() != ".gif":
         raise ValueError(f"{str(path)!r} is not a .gif file name")
-    if not math.isfinite(exposure):
-        raise ValueError(f"exposure={exposure!r} must be finite (stops)")
+    exposure = check_exposure(exposure)
     check_fps(fps, video=False)
+    if isinstance(loop, bool) or not isinstance(loop, (int, np.integer)) or not 0 <= loop <= 65535:
+        raise ValueError(f"loop={_shown_value(loop)} is not valid: expected a whole number "
+                         "from 0 (loop forever) to 65535 (plays)")  # fmt: skip
     shape, frames = _frames(frames)
     oiio = _oiio()
     with atomic_output(path) as tmp:
@@ -438,18 +707,60 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
         spec = oiio.ImageSpec(shape[1], shape[0], 3, oiio.UINT8)
         spec.attribute("FramesPerSecond", oiio.TypeDesc("rational"), (100, _gif_delay(fps)))
         spec.attribute("gif:LoopCount", int(loop))
-        mode = "create"
+        mode, count = "create", 0
         try:
             for frame in frames:
                 if not out.open(tmp, spec, mode):
-                    raise OSError(f"cannot write {str(path)!r}: {out.geterror()}")
+                    raise OSError(f"cannot write {_shown(path)}: {out.geterror()}")
                 mode = "AppendSubimage"
                 img = to_display(frame, exposure=exposure)
                 if not out.write_image(np.ascontiguousarray(img)):
-                    raise OSError(f"cannot write {str(path)!r}: {out.geterror()}")
+                    raise OSError(f"cannot write {_shown(path)}: {out.geterror()}")
+                count += 1
         finally:
-            out.close()
+            closed = out.close()
+        if not closed:
+            raise OSError(f"cannot write {_shown(path)}: {out.geterror()}")
+        _check_gif(tmp, path, count)
     return path
+
+
+def _check_gif(tmp, path, frames: int) -> None:
+    """Read a GIF written by OpenImageIO back, block by block, to its trailer: `OSError`
+    unless it is whole, with `frames` images (its GIF writer does not check its writes:
+    a full disk left a truncated file and "success")."""
+    with open(tmp, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+    try:
+        pos, images = 13, 0
+        if size < 14 or data[:3] != b"GIF":
+            raise EOFError
+        if data[10] & 0x80:  # a global colour table
+            pos += 3 << ((data[10] & 7) + 1)
+        while data[pos] != 0x3B:  # until the trailer
+            if data[pos] == 0x21:  # an extension: its label, then sub-blocks
+                pos += 2
+            elif data[pos] == 0x2C:  # an image: its descriptor, colour table, LZW data
+                flags, images = data[pos + 9], images + 1
+                pos += 10 + (3 << ((flags & 7) + 1) if flags & 0x80 else 0) + 1
+            else:
+                raise EOFError
+            while data[pos]:  # sub-blocks, to the empty one
+                pos += data[pos] + 1
+            pos += 1
+        if pos + 1 != size or images != frames:
+            raise EOFError
+    except (EOFError, IndexError):
+        err = OSError(f"writing {_shown(path)} failed: the GIF written is incomplete")
+        with contextlib.suppress(OSError):
+            disk = os.statvfs(tmp)
+            if disk.f_bavail * disk.f_frsize < 1 << 20:  # full: the failed writes' cause
+                err.errno = errno.ENOSPC
+        raise err from None
+    finally:
+        if size:
+            data.close()
 
 
 def _av():
@@ -497,17 +808,18 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
 
     **Arguments:** `path` (.mp4); `frames`: `(N, H, W, 3)` linear radiance, or an
     iterable of `(H, W, 3)` frames, encoded as they come (a generator streams them);
-    `exposure` (stops); `fps`: frames a second, 0.001 to 1000 (kept as a fraction with a
-    denominator up to 1001: 29.97 is 2997/100).
+    `exposure` (stops, in (-100, 100)); `fps`: frames a second, 0.001 to 1000 (kept as
+    a fraction with a denominator up to 1001: 29.97 is 2997/100).
 
     **Returns:** the path written. Raises `ValueError` for an unusable path, frames,
-    exposure or fps. Never leaves a half-written file, also when interrupted.
+    exposure or fps, `OSError` when the file cannot be written (a full disk: "no space
+    left on device writing PATH"; the old file, if any, is then as it was). Never
+    leaves a half-written file, also when interrupted.
     """
     path = check_output_path(path)
     if path.suffix.lower() != ".mp4":
         raise ValueError(f"{str(path)!r} is not a .mp4 file name")
-    if not math.isfinite(exposure):
-        raise ValueError(f"exposure={exposure!r} must be finite (stops)")
+    exposure = check_exposure(exposure)
     check_fps(fps, video=True)
     (h, w, _), frames = _frames(frames)
     av = _av()
@@ -538,12 +850,37 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
 
 
 def png_bytes(image: np.ndarray, *, exposure: float = 0.0) -> bytes:
-    """Encode a linear image as PNG bytes (8-bit sRGB), for notebooks and widgets."""
+    """Encode a linear image as PNG bytes (8-bit sRGB), for notebooks and widgets.
+    `exposure`: stops, in (-100, 100); `ValueError` for one out of range or an image
+    that is not real numbers."""
     from PIL import Image
 
     buf = io.BytesIO()
     Image.fromarray(to_display(image, exposure=exposure)).save(buf, format="PNG")
     return buf.getvalue()
+
+
+@contextlib.contextmanager
+def _native_stderr():
+    """Context manager around a native reader that writes its errors to the process's
+    stderr itself (libpng: "libpng error: ..." before jaxlens's own line): file
+    descriptor 2 goes to a temporary file meanwhile. Yields a list whose one item is
+    then what was written there (its first 64 KiB), for the caller to say or not."""
+    said = [""]
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as f:
+            os.dup2(f.fileno(), 2)
+            try:
+                yield said
+            finally:
+                os.dup2(saved, 2)
+                f.seek(0)
+                said[0] = f.read(1 << 16).decode(errors="replace")
+    finally:
+        os.close(saved)
 
 
 def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, dict]:
@@ -565,10 +902,12 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
     config = oiio.ImageSpec()
     if unassociated_alpha:
         config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(str(path), config)
+    with _native_stderr() as said:
+        inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
-        msg = " ".join(oiio.geterror().split()) or "unknown format"
-        raise ValueError(f"{str(path)!r} is not a readable image: {msg}")
+        msg = " ".join((oiio.geterror() or said[0]).split()) or "unknown format"
+        raise ValueError(f"{_shown(path)} is not a readable image: {msg[:500]}")
+    said = [""]
     try:
         spec = inp.spec()
         # Refused before reading when its pixels and the copies its readers make (the
@@ -577,7 +916,8 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
         _check_memory(24 * spec.width * spec.height * spec.nchannels,
                       f"{str(path)!r} is {spec.width} x {spec.height} pixels x "
                       f"{spec.nchannels} channels: reading it needs")  # fmt: skip
-        data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        with _native_stderr() as said:
+            data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         err = inp.geterror()
         info = {
             "space": str(spec.get_string_attribute("oiio:ColorSpace", "")).lower(),
@@ -588,8 +928,11 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
     finally:
         inp.close()
     if data is None or err:
-        msg = " ".join((err or "no pixel data").split())
-        raise ValueError(f"{str(path)!r} is not a readable image (truncated or corrupt?): {msg}")
+        msg = " ".join((err or said[0] or "no pixel data").split())
+        raise ValueError(f"{_shown(path)} is not a readable image (truncated or corrupt?): "
+                         f"{msg[:500]}")  # fmt: skip
+    if said[0]:  # a warning of a file read well (libpng's about a colour profile): as before
+        os.write(2, said[0].encode())
     data = np.asarray(data, np.float32)
     if data.ndim == 2:
         data = data[..., None]

@@ -376,8 +376,10 @@ def test_animate_writes_frames_and_gif(tmp_path, capsys):
     code, stdout, err = run(["animate", *args, "--supersample", "1", "-o", str(out),
                              "--frames-dir", str(frames_dir)], capsys)  # fmt: skip
     assert code == 0 and f"3 frames in {frames_dir}/" in stdout, err
-    frames = sorted(os.listdir(frames_dir))
-    assert frames == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    frames = sorted(os.listdir(frames_dir))  # and the record of the frames written
+    assert frames == [".jaxlens-frames.json", "frame_0000.png", "frame_0001.png",
+                      "frame_0002.png"]  # fmt: skip
+    frames = frames[1:]
     # An orbit turns the sky: the frames differ.
     a = np.asarray(Image.open(frames_dir / frames[0]))
     b = np.asarray(Image.open(frames_dir / frames[1]))
@@ -406,7 +408,7 @@ def test_animate_streams_groups_of_frames_and_replaces_or_keeps_a_frames_folder(
     assert run([*base, "--frames", "5"], capsys)[0] == 0
     assert calls == [(2,), (2,), (2,)]
     first = {n: (frames_dir / n).read_bytes() for n in sorted(os.listdir(frames_dir))}
-    assert list(first) == [f"frame_000{i}.png" for i in range(5)]
+    assert list(first) == [".jaxlens-frames.json"] + [f"frame_000{i}.png" for i in range(5)]
     with Image.open(out) as im:
         assert im.n_frames == 5
 
@@ -428,7 +430,9 @@ def test_animate_streams_groups_of_frames_and_replaces_or_keeps_a_frames_folder(
     # A rerun with fewer frames replaces them all: none of the earlier five is left.
     monkeypatch.setattr(jl, "render", real)
     assert run([*base, "--frames", "3", "--start", "20"], capsys)[0] == 0
-    assert sorted(os.listdir(frames_dir)) == [f"frame_000{i}.png" for i in range(3)]
+    assert sorted(os.listdir(frames_dir)) == [".jaxlens-frames.json"] + [
+        f"frame_000{i}.png" for i in range(3)
+    ]
     assert (frames_dir / "frame_0000.png").read_bytes() != first["frame_0000.png"]
 
 
@@ -442,8 +446,10 @@ def test_animate_writes_frames_and_mp4(tmp_path, capsys):
     assert code == 0, err
     assert f"wrote {out}" in stdout
     assert sorted(os.listdir(tmp_path)) == ["orbit.mp4", "orbit_frames"]
-    names = sorted(os.listdir(tmp_path / "orbit_frames"))
-    assert names == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    names = sorted(os.listdir(tmp_path / "orbit_frames"))  # and the frames' record
+    assert names == [".jaxlens-frames.json", "frame_0000.png", "frame_0001.png",
+                     "frame_0002.png"]  # fmt: skip
+    names = names[1:]
     pngs = [np.asarray(Image.open(tmp_path / "orbit_frames" / n)).astype(int) for n in names]
     with av.open(str(out)) as c:
         s = c.streams.video[0]

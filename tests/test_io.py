@@ -186,18 +186,24 @@ def test_temporaries_of_killed_processes_are_found_and_removed(tmp_path, capsys)
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()  # a process that no longer runs
-    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    host = _io._host()
+    names = {
+        "killed": f".out{_io._TMP_TAG}{host}.{dead.pid}.abcd1234.png",
+        "other_output": f".other{_io._TMP_TAG}{host}.{dead.pid}.abcd1234.png",
+        # Written by a running process, which holds its lock (its PID is no proof:
+        # this one's is of a process that has ended, as in another PID namespace).
+        "running": f".out{_io._TMP_TAG}{host}.{dead.pid}.efgh5678.png",
+        "other_host": f".out{_io._TMP_TAG}elsewhere.{dead.pid}.abcd1234.png",
+        "not_ours": ".out.abcd1234.png",
+    }
+    for name in names.values():
+        (tmp_path / name).write_bytes(b"partial")
+    alive = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, os, sys, time; fd = os.open(sys.argv[1], 0); "
+         "fcntl.flock(fd, fcntl.LOCK_EX); print(1, flush=True); time.sleep(60)",
+         str(tmp_path / names["running"])], stdout=subprocess.PIPE)  # fmt: skip
     try:
-        host = _io._host()
-        names = {
-            "killed": f".out{_io._TMP_TAG}{host}.{dead.pid}.abcd1234.png",
-            "other_output": f".other{_io._TMP_TAG}{host}.{dead.pid}.abcd1234.png",
-            "running": f".out{_io._TMP_TAG}{host}.{alive.pid}.abcd1234.png",
-            "other_host": f".out{_io._TMP_TAG}elsewhere.{dead.pid}.abcd1234.png",
-            "not_ours": ".out.abcd1234.png",
-        }
-        for name in names.values():
-            (tmp_path / name).write_bytes(b"partial")
+        assert alive.stdout.readline() == b"1\n"  # the lock is held
         # Writing out.png removes its own stale temporary only.
         write_image(tmp_path / "out.png", _image())
         left = set(os.listdir(tmp_path))
