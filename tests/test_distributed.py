@@ -109,8 +109,21 @@ def test_an_animation_over_two_processes_is_bitwise_one_process(tmp_path):
     import signal
     import time
 
+    from PIL import Image
+
+    # A panorama sky: B for the reference, A for a run that is killed, then B again in
+    # the same file, of the same size, inode and time (PNGs of 32 x 16 random pixels).
+    rng = np.random.default_rng(0)
+    pictures = {}
+    for name in ("A", "B"):
+        Image.fromarray(rng.integers(0, 256, (16, 32, 3), np.uint8)).save(tmp_path / "p.png")
+        pictures[name] = (tmp_path / "p.png").read_bytes()
+    assert len(pictures["A"]) == len(pictures["B"]) and pictures["A"] != pictures["B"]
+    sky = tmp_path / "sky.png"
+    sky.write_bytes(pictures["B"])
     env = _command_env(tmp_path / "cache")
-    anim = ["animate", "--size", "64x36", "--frames", "6", "--path", "orbit"]
+    anim = ["animate", "--size", "64x36", "--frames", "6", "--path", "orbit", "--sky",
+            f"panorama:{sky}"]  # fmt: skip
     for name in ("one", "two", "three"):
         (tmp_path / name).mkdir()
     one = _jaxlens([*anim, "-o", str(tmp_path / "one" / "a.gif"), "--frames-dir",
@@ -121,12 +134,15 @@ def test_an_animation_over_two_processes_is_bitwise_one_process(tmp_path):
     assert two.returncode == 0, two.stderr[-3000:]
     assert "2 processes" in two.stdout and "[Gloo]" not in two.stdout
     ref = _files(tmp_path / "one")
-    assert sorted(ref) == ["a.gif"] + [f"f/frame_{i:04d}.png" for i in range(6)]
+    shown = sorted(k for k in ref if "/." not in k)  # (a hidden record of the frames too)
+    assert shown == ["a.gif"] + [f"f/frame_{i:04d}.png" for i in range(6)]
     assert _files(tmp_path / "two") == ref  # nothing else either: no staging folder left
 
-    # Process 1 held once it has joined, and killed once process 0 has finished its
-    # share: a clear error, no output file; the 3 frames process 0 finished are kept,
-    # and a rerun completes from them, bit for bit the same animation.
+    # Sky A. Process 1 held once it has joined, and killed once process 0 has finished
+    # its share: a clear error, no output file; the 3 frames process 0 finished are kept.
+    with open(sky, "r+b") as f:
+        f.write(pictures["A"])
+    stat = sky.stat()
     out = tmp_path / "three" / "a.gif"
     p = subprocess.Popen([sys.executable, "-m", "jaxlens", *anim, "-o", str(out), "--processes",
                           "2"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -148,14 +164,23 @@ def test_an_animation_over_two_processes_is_bitwise_one_process(tmp_path):
     line = err.replace("\r", "\n").strip().splitlines()[-1]
     assert line.startswith("jaxlens animate: error: process 1 of 2 was killed by SIGKILL"), err
     assert "nothing was written to" in line
-    assert "3 finished frames are kept in" in line
     (stage,) = out.parent.iterdir()  # nothing but the finished frames
     assert stage.name.startswith(".a.gif.frames-")
-    assert sorted(f.name for f in stage.iterdir()) == ["00000.npy", "00001.npy", "00002.npy"]
+    assert line.endswith(f"; 3 of 6 frames finished are kept in {stage}: rerun the same command "
+                         "to continue")  # fmt: skip
+    assert sorted(f.name for f in stage.glob("*.npy")) == ["00000.npy", "00001.npy", "00002.npy"]
+
+    # Sky B again, in the same file with the same size and time: the rerun starts afresh
+    # (frames of sky A are not reused) and makes the animation of sky B, bit for bit.
+    with open(sky, "r+b") as f:
+        f.write(pictures["B"])
+    os.utime(sky, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert (sky.stat().st_size, sky.stat().st_ino, sky.stat().st_mtime_ns) == (
+        stat.st_size, stat.st_ino, stat.st_mtime_ns)  # fmt: skip
     again = _jaxlens([*anim, "-o", str(out), "--processes", "2"], env)
     assert again.returncode == 0, again.stderr[-3000:]
-    assert "3 frames from an earlier run" in again.stdout, again.stdout
-    assert _files(out.parent) == {"a.gif": ref["a.gif"]}
+    assert "from an earlier run" not in again.stdout, again.stdout
+    assert _files(out.parent) == {"a.gif": ref["a.gif"]}  # the stale frames removed too
 
 
 def test_fits_over_two_processes_are_bitwise_one_process(tmp_path):

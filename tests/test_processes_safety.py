@@ -1,0 +1,144 @@
+"""`--processes N` runs that do not harm each other or the machine: a run's folder of
+finished frames is its own while it runs (another run of the same work is refused,
+one of other work leaves it alone), an interrupted launcher says what it kept, the
+processes of a killed launcher end with it, and N is bounded by the machine."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from jaxlens import cli
+
+
+def _env(cache) -> dict:
+    # Two CPU devices a process, and one persistent cache for the runs of the test.
+    return dict(os.environ, JAXLENS_CACHE_DIR=str(cache),
+                XLA_FLAGS="--xla_force_host_platform_device_count=2")  # fmt: skip
+
+
+def _start(args, env):
+    return subprocess.Popen([sys.executable, "-m", "jaxlens", *args], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+def _children(pid: int) -> dict[int, int]:
+    """`{process index: pid}` of the processes `jaxlens ... --processes N` started."""
+    out = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            if ppid != pid:
+                continue
+            with open(f"/proc/{entry}/environ", "rb") as f:
+                env = dict(v.split(b"=", 1) for v in f.read().split(b"\0") if b"=" in v)
+        except (OSError, ValueError, IndexError):
+            continue
+        if b"JAXLENS_PROCESS_ID" in env:
+            out[int(env[b"JAXLENS_PROCESS_ID"])] = int(entry)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie, ended and not yet reaped, does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _until(done, what, timeout=120.0):
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+
+
+def _last_line(err: str) -> str:
+    return err.replace("\r", "\n").strip().splitlines()[-1]
+
+
+def test_runs_to_one_output_keep_off_each_others_work_and_end_with_their_launcher(tmp_path):
+    env = _env(tmp_path / "cache")
+    out = tmp_path / "run" / "a.gif"
+    out.parent.mkdir()
+    anim = ["animate", "--size", "32x16", "--frames", "4", "--path", "orbit", "-o", str(out),
+            "--processes", "2"]  # fmt: skip
+
+    # Run X: process 1 held once it has joined, process 0 finishes its 2 frames and
+    # waits for the others.
+    x = _start(anim, env)
+    try:
+        _until(lambda: list(out.parent.glob(".a.gif.frames-*")), "the stage folder")
+        (stage,) = out.parent.glob(".a.gif.frames-*")
+        workers = _children(x.pid)
+        os.kill(workers[1], signal.SIGSTOP)
+        _until(lambda: len(list(stage.glob("0*.npy"))) >= 2, "process 0's frames")
+
+        # Another animation to the same file finishes meanwhile: X's folder stays.
+        other = subprocess.run([sys.executable, "-m", "jaxlens", *anim, "--exposure", "1"],
+                               env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert other.returncode == 0, other.stderr[-3000:]
+        assert sorted(p.name for p in stage.glob("0*.npy")) == ["00000.npy", "00001.npy"]
+
+        # The same animation to the same file is refused at once, naming X's launcher.
+        same = subprocess.run([sys.executable, "-m", "jaxlens", *anim], env=env,
+                              capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert same.returncode == 2, same.stderr[-3000:]
+        assert _last_line(same.stderr) == (
+            f"jaxlens animate: error: another jaxlens run is writing {out} (pid {x.pid}); "
+            "wait for it or choose another output")  # fmt: skip
+        assert stage.is_dir()
+
+        # SIGTERM to X: one line that says what is kept and that a rerun continues,
+        # and the exit status of a terminated single-process command.
+        os.kill(x.pid, signal.SIGTERM)
+        err = x.communicate(timeout=60)[1]
+    finally:
+        x.kill()
+    assert x.returncode == 128 + signal.SIGTERM, err
+    assert _last_line(err) == (
+        f"jaxlens animate: terminated; nothing was written to {out}; 2 of 4 frames finished "
+        f"are kept in {stage}: rerun the same command to continue")  # fmt: skip
+    assert not any(_alive(pid) for pid in workers.values())
+
+    # Run W continues from them; SIGKILLed once it holds the folder (process 0 has
+    # joined and the others work), its processes end within seconds.
+    w = _start(anim, env)
+    try:
+        lock = stage / "lock"
+        _until(lambda: json.loads(lock.read_text() or "{}").get("pid") == w.pid, "run W")
+        workers = _children(w.pid)
+        assert sorted(workers) == [0, 1]
+        w.kill()
+        w.wait()
+        deadline = time.monotonic() + 15.0
+        while any(_alive(pid) for pid in workers.values()):
+            assert time.monotonic() < deadline, "the processes outlived their launcher"
+            time.sleep(0.05)
+    finally:
+        w.kill()
+        for pid in _children(w.pid).values():
+            os.kill(pid, signal.SIGKILL)
+    assert sorted(p.name for p in stage.glob("0*.npy"))[:2] == ["00000.npy", "00001.npy"]
+
+
+def test_processes_are_bounded_by_the_cores_and_the_memory(tmp_path, capsys):
+    cores = len(os.sched_getaffinity(0))
+    n = 2 * cores + 1
+    out = tmp_path / "a.png"
+    code = cli.main(["render", "--size", "16x12", "-o", str(out), "--processes", str(n)])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err == (f"jaxlens render: error: --processes {n} is more than this machine can "
+                   f"run: it has {cores} CPU core{'s' if cores > 1 else ''} for this command, "
+                   f"expected at most {2 * cores} (2 a core)\n")  # fmt: skip
+    assert list(tmp_path.iterdir()) == []
+    code = cli.main(["render", "--size", "16x12", "-o", str(out), "--processes", "0"])
+    assert code == 2 and "--processes 0 is not valid: expected 1 or more" in capsys.readouterr().err
