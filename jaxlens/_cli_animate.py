@@ -2,13 +2,14 @@
 pan, zoom), and optionally its frames as image files. Frames are rendered in batched
 compiled calls of one size and streamed to the files as they come."""
 
+import json
 import math
 import time
 from pathlib import Path
 
 import numpy as np
 
-from . import _io, _multi
+from . import _io, _multi, _schema
 from ._cli_render import add_scene_options, pixel_dtype, scene_dict
 from ._schema import ANIMATION_PATHS, ANIMATION_RANGES
 
@@ -54,14 +55,20 @@ def path_values(path: str, start: float, stop: float, frames: int) -> np.ndarray
     return np.linspace(start, stop, frames, endpoint=not full)
 
 
-def _check(path, start, stop):
-    for name, v in (("--start", start), ("--stop", stop)):
-        if not math.isfinite(v):
-            raise ValueError(f"{name} {v!r} is not valid: expected a finite number")
-        if path == "approach" and not v > 1:
-            raise ValueError(f"{name} {v!r} is not a valid distance: expected > 1 (units of R_S)")
-        if path == "zoom" and not 0 < v < 180:
-            raise ValueError(f"{name} {v!r} is not a valid FOV: expected (0, 180) degrees")
+def _check_path(args, path: str, start: float, stop: float) -> None:
+    """The first and last value of a camera path against the scene key they stand for:
+    a distance (R_S) for `approach`, a FOV (degrees) for `zoom`, an angle (degrees) for
+    `orbit` (the camera's azimuth) and `pan` (its yaw). The message names the option,
+    or the scene file's key where the value is the file's."""
+    from ._scene import CAMERA_KEYS
+
+    key = CAMERA_KEYS[{"approach": "distance", "zoom": "fov_deg", "orbit": "azimuth_deg",
+                       "pan": "yaw_deg"}[path]]  # fmt: skip
+    for name, v in (("start", start), ("stop", stop)):
+        if getattr(args, name) is not None:
+            _schema.coerce("", f"--{name}", v, key, equals=" ")
+        else:
+            _schema.coerce(f"{args.scene}: [animation] ({path})", name, v, key)
 
 
 def run(args):
@@ -79,10 +86,11 @@ def run(args):
                          "it)")  # fmt: skip
     if video:
         _io.require_video()  # before the rendering, not after it
-    if args.frames is not None and not 1 <= args.frames <= 10000:
-        raise ValueError(f"--frames {args.frames} is not valid: expected 1 to 10000")
-    if args.fps is not None and not (math.isfinite(args.fps) and 0 < args.fps < 1000):
-        raise ValueError(f"--fps {args.fps!r} is not valid: expected a number in (0, 1000)")
+    from ._scene import ANIMATION_KEYS
+
+    for flag in ("frames", "fps"):
+        if getattr(args, flag) is not None:
+            _schema.coerce("", f"--{flag}", getattr(args, flag), ANIMATION_KEYS[flag], equals=" ")
     scene = scene_dict(args)
     anim = scene["animation"]
     kind = args.path or anim["path"]
@@ -93,7 +101,7 @@ def run(args):
     frames = anim["frames"] if args.frames is None else args.frames
     fps = anim["fps"] if args.fps is None else args.fps
     _io.check_fps(fps, video)  # before rendering: a rate the file format can store
-    _check(kind, start, stop)
+    _check_path(args, kind, start, stop)
     width, height = scene["camera"]["width"], scene["camera"]["height"]
     group = frames_per_call(width, height, frames)
     if count > 1:
@@ -103,9 +111,10 @@ def run(args):
     _io.check_render_memory(width, height, group)
     frames_dir = None if args.frames_dir is None else _check_frames_dir(Path(args.frames_dir))
 
-    dtype = pixel_dtype(args, scene)
-    base = jl.Scene.from_validated(scene, dtype=dtype)
     values = path_values(kind, start, stop, frames)
+    dtype = pixel_dtype(args, scene, distances=values if kind == "approach" else (),
+                        fovs_deg=values if kind == "zoom" else ())  # fmt: skip
+    base = jl.Scene.from_validated(scene, dtype=dtype)
     step = {"approach": jl.approach, "orbit": jl.orbit, "pan": jl.pan, "zoom": jl.zoom}[kind]
     exposure = base.exposure
 
@@ -126,8 +135,9 @@ def run(args):
     with tqdm(total=frames, desc="animate", unit="frame", delay=2.0, leave=False,
               disable=index != 0) as bar:  # fmt: skip
         if args.distributed:
-            settings = [scene, kind, values.tolist(), str(np.dtype(dtype))]
-            stage = _multi.Stage(out, "frames", settings)
+            key = json.dumps([scene, kind, values.tolist(), str(np.dtype(dtype))],
+                             sort_keys=True, default=str)  # fmt: skip
+            stage = _multi.Stage(out, "frames", key)
             earlier = stage.finished()
             groups = [range(lo, min(lo + group, frames)) for lo in range(0, frames, group)]
             stage.fill(groups, lambda g: render_group(groups[g].start), index, count, bar)
@@ -154,7 +164,7 @@ def run(args):
     over = f", {count} processes" if count > 1 else ""
     if args.distributed and earlier:
         over += f", {earlier} frames from an earlier run"
-    print(f"wrote {out}{where} ({kind} from {start:g} to {stop:g}, "
+    print(f"wrote {out}{where} ({kind} from {start:.12g} to {stop:.12g}, "
           f"{time.perf_counter() - t:.1f} s{over})")  # fmt: skip
     return 0
 

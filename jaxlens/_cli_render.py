@@ -7,19 +7,25 @@ import math
 import time
 from pathlib import Path
 
-from . import _io, _multi
+from . import _io, _multi, _schema
 from ._schema import DEFAULT_SKY
 
 SKY_CHOICES = "star | default | checker | panorama:PATH | plane:PATH"
 
 
 def _size(text):
+    """`--size WxH`: (width, height), each checked against the scene file's keys."""
+    from ._scene import CAMERA_KEYS
+
+    shown = _schema.cut(repr(text))
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"--size {text!r} is not WxH with whole numbers, e.g. 1280x720") from None
+        raise ValueError(f"--size {shown} is not WxH with whole numbers, e.g. 1280x720") from None
     if w < 1 or h < 1:
-        raise ValueError(f"--size {text!r}: width and height must be >= 1 pixel")
+        raise ValueError(f"--size {shown}: width and height must be >= 1 pixel")
+    for name, v in (("width", w), ("height", h)):
+        _schema.coerce(f"--size {shown}:", name, v, CAMERA_KEYS[name], equals=" ")
     return w, h
 
 
@@ -34,11 +40,6 @@ def _sky_layers(text) -> list[dict]:
     if kind == "default":
         return [dict(layer) for layer in DEFAULT_SKY]
     return [{"type": kind}]
-
-
-def _finite(flag, value, valid, ok=lambda v: True):
-    if value is not None and not (math.isfinite(value) and ok(value)):
-        raise ValueError(f"{flag} {value!r} is not valid: expected {valid}")
 
 
 class _SceneKeys(argparse.Action):
@@ -88,21 +89,28 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
 
 
 def scene_dict(args) -> dict:
-    """The validated scene: the file (if any), then the command-line options over it."""
-    _finite("--distance", args.distance, "a finite number > 1 (units of R_S)", lambda v: v > 1)
-    _finite("--fov-deg", args.fov, "a number in (0, 180) degrees", lambda v: 0 < v < 180)
-    _finite("--star-sigma-deg", args.star_sigma_deg, "a number in (0, 180) degrees",
-            lambda v: 0 < v < 180)  # fmt: skip
-    _finite("--star-brightness", args.star_brightness, "a finite number")
-    _finite("--floor", args.floor, "a finite number")
-    _finite("--exposure", args.exposure, "a finite number of stops")
-    for flag in ("yaw", "pitch", "roll"):
-        _finite(f"--{flag}-deg", getattr(args, flag), "a finite number of degrees")
-    _finite("--accuracy", args.accuracy, "a number in (0, 0.1) radians", lambda v: 0 < v < 0.1)
-    if args.supersample is not None and not 1 <= args.supersample <= 64:
-        raise ValueError(f"--supersample {args.supersample} is not valid: expected 1 to 64")
+    """The validated scene: the file (if any), then the command-line options over it.
+    Each option is checked first against the scene key it sets, so that its message
+    names the option and its value (`--distance -inf is not valid: expected ...`)."""
+    from ._scene import CAMERA_KEYS, OUTPUT_KEYS, TOP_KEYS, read_scene_file, validate
 
-    from ._scene import read_scene_file, validate  # imports JAX: not at parser build
+    star, uniform = _schema.keys("sky", "star"), _schema.keys("sky", "uniform")
+    options = [
+        ("--distance", args.distance, CAMERA_KEYS["distance"]),
+        ("--fov-deg", args.fov, CAMERA_KEYS["fov_deg"]),
+        ("--star-sigma-deg", args.star_sigma_deg, star["sigma_deg"]),
+        ("--star-brightness", args.star_brightness, star["brightness"]),
+        ("--floor", args.floor, uniform["level"]),
+        ("--exposure", args.exposure, OUTPUT_KEYS["exposure"]),
+        ("--yaw-deg", args.yaw, CAMERA_KEYS["yaw_deg"]),
+        ("--pitch-deg", args.pitch, CAMERA_KEYS["pitch_deg"]),
+        ("--roll-deg", args.roll, CAMERA_KEYS["roll_deg"]),
+        ("--accuracy", args.accuracy, TOP_KEYS["accuracy"]),
+        ("--supersample", args.supersample, CAMERA_KEYS["supersample"]),
+    ]
+    for flag, value, key in options:
+        if value is not None:
+            _schema.coerce("", flag, value, key, equals=" ")
 
     data = read_scene_file(args.scene) if args.scene else {}
     source = args.scene or "command line"
@@ -153,12 +161,18 @@ def scene_dict(args) -> dict:
     return validate(data, source=source)
 
 
-def pixel_dtype(args, scene):
-    """float32 pixels unless --float64, or a distance float32 cannot tell from 1."""
+def pixel_dtype(args, scene, *, distances=(), fovs_deg=()):
+    """float32 pixels unless --float64, or a distance (R_S) float32 cannot tell from 1
+    (1 + 1e-9), or a field of view (degrees) it cannot tell from 0 or 180 (179.99999999):
+    values that are valid in the scene but not in float32. `distances` and `fovs_deg`:
+    more of them (an animation's path)."""
     import jax.numpy as jnp
     import numpy as np
 
-    if args.float64 or not np.float32(scene["camera"]["distance"]) > 1.0:
+    cam = scene["camera"]
+    d = np.float32([cam["distance"], *distances])
+    fov = np.float32(np.radians([cam["fov_deg"], *fovs_deg])).astype(float)
+    if args.float64 or not (np.all(d > 1.0) and np.all((fov > 0) & (fov < math.pi))):
         return jnp.float64
     return jnp.float32
 
@@ -199,11 +213,14 @@ def run(args):
     cli.status("rendering (compiling on first use)")
     if args.distributed:
         # Every process renders its share of the blocks into a folder beside the output,
-        # named for the scene and its input files (a rerun reuses what a failed one
-        # finished of the same work); process 0 puts the image together and writes it.
+        # named for the scene (a rerun reuses what a failed one finished); process 0
+        # puts the image together and writes it.
+        import json
+
         from ._render import render_share
 
-        stage = _multi.Stage(out, "blocks", [v, str(scene.camera.dtype)])
+        key = json.dumps([v, str(scene.camera.dtype)], sort_keys=True, default=str)
+        stage = _multi.Stage(out, "blocks", key)
         img = render_share(scene, stage, index, count)
         if img is None:
             return 0  # process 0 writes the image
@@ -223,6 +240,6 @@ def run(args):
     over = f", {count} processes" if count > 1 else ""
     print(
         f"wrote {path} ({c['width']}x{c['height']}, D = {c['distance']:.12g} R_S, "
-        f"FOV = {c['fov_deg']:g} deg, {time.perf_counter() - t:.1f} s{over})"
+        f"FOV = {c['fov_deg']:.12g} deg, {time.perf_counter() - t:.1f} s{over})"
     )
     return 0

@@ -131,12 +131,15 @@ def describe(value) -> str:
 MAGNITUDE_MAX = 1e30
 
 
-def coerce(where: str, name: str, value, key: Key) -> Any:
+def coerce(where: str, name: str, value, key: Key, *, equals: str = " = ") -> Any:
     """Check the type and range of one value; return it in its Python type. The error
-    names the table, the key (and the item of a list), the value and what is valid."""
+    names the table, the key (and the item of a list), the value and what is valid:
+    "WHERE NAME = VALUE is not valid: expected ..." (`equals=" "` and `where=""` for a
+    command-line option: "--distance -inf is not valid: ...")."""
+    label = f"{where} {name}" if where else name
 
     def bad(v=value, at=""):
-        return ValueError(f"{where} {name}{at} = {describe(v)} is not valid: expected {key.text}")
+        return ValueError(f"{label}{at}{equals}{describe(v)} is not valid: expected {key.text}")
 
     def number(v, at=""):
         if isinstance(v, bool) or not isinstance(v, int | float):
@@ -147,15 +150,16 @@ def coerce(where: str, name: str, value, key: Key) -> Any:
             raise bad(v, at) from None
         if not math.isfinite(f):
             raise bad(v, at)
-        if abs(f) > MAGNITUDE_MAX:
-            raise ValueError(f"{where} {name}{at} = {describe(v)} is not valid: expected "
+        if abs(f) > MAGNITUDE_MAX and (kind != "float" or key.check(f)):  # (else: range)
+            raise ValueError(f"{label}{at}{equals}{describe(v)} is not valid: expected "
                              f"{key.text}, at most {MAGNITUDE_MAX:g} in magnitude")  # fmt: skip
         return f
+
+    kind = key.kind
 
     def numbers(values):
         return [number(x, f"[{i}]") for i, x in enumerate(values)]
 
-    kind = key.kind
     if kind == "float":
         v = number(value)
     elif kind == "int":

@@ -11,6 +11,7 @@ import functools
 import gc
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -23,12 +24,24 @@ _COMMANDS = ("jaxlens._cli_render", "jaxlens._cli_animate", "jaxlens._cli_clean"
 _OPTIONAL = ("jaxlens._cli_fit",)
 
 
+_NEGATIVE_NUMBER = re.compile(r"^-(\d|\.\d|inf|nan)", re.IGNORECASE)
+
+
 class UsageError(Exception):
     """Bad input from the command line: one line on stderr, exit code 2."""
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line (the usage text stays in --help)."""
+    """argparse, but a usage error is one line (the usage text stays in --help), and an
+    argument that looks like a negative number (`-inf`, `-1e300`, `-5x10`) is a value,
+    not an option: `--distance -inf` is then refused by the check that names it, rather
+    than by argparse's "expected one argument"."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # argparse's own pattern matches `-5` and `-.5` only; no option of jaxlens
+        # starts with a digit, a point, "inf" or "nan", so these are never options.
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {one_line(message)} (see --help)\n")

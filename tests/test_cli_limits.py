@@ -123,3 +123,123 @@ def test_one_line_cuts_long_words_and_long_lines():
     assert line.startswith("value " + "x" * 200 + "... (5000 characters) is bad")
     line = cli.one_line(" ".join(str(i) for i in range(100_000)))
     assert len(line) <= 1000 and line.startswith("0 1 2 3") and line.endswith("99998 99999")
+
+
+# -------------------------------------------------------------- values named
+
+
+def no_render(monkeypatch):
+    """`jl.render` that fails the test: the value must be refused before rendering."""
+
+    def render(*args, **kwargs):
+        raise AssertionError("rendered")
+
+    monkeypatch.setattr(jl, "render", render)
+
+
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        # Values that start with "-": argparse took them for options ("expected one argument").
+        (["--distance", "-inf"], "--distance -inf is not valid: expected a finite number > 1 "
+         "(units of R_S)"),
+        (["--size", "-5x10"], "--size '-5x10': width and height must be >= 1 pixel"),
+        (["--exposure", "-1e300"], "--exposure -1e+300 is not valid: expected a number in "
+         "(-100, 100) (stops)"),
+        (["--yaw-deg", "-nan"], "--yaw-deg nan is not valid: expected a finite number (degrees)"),
+        (["--fov-deg", "-Infinity"], "--fov-deg -inf is not valid"),
+        (["--star-brightness", "-1E300"], "--star-brightness -1e+300 is not valid"),
+        # Enough digits to show the value is outside the range.
+        (["--fov-deg", "180.0000000001"], "--fov-deg 180.0000000001 is not valid: expected a "
+         "number in (0, 180) (degrees)"),
+        (["--size", "2000000x10"], "--size '2000000x10': width 2000000 is not valid: expected a "
+         "whole number from 1 to 1048575 (pixels)"),
+        (["--supersample", str(10**30)], f"--supersample {10**30} is not valid: expected a "
+         "whole number from 1 to 64"),
+    ],
+)  # fmt: skip
+def test_every_bad_option_value_is_named(tmp_path, capsys, monkeypatch, extra, message):
+    no_render(monkeypatch)
+    code, _, err = run(["render", *extra, "-o", str(tmp_path / "o.png")], capsys)
+    assert code == 2 and message in one_error_line(err)
+
+
+@pytest.mark.parametrize(
+    "sky,message",
+    [
+        ("type = 'stars'\nseed = -1", "[[sky]] #1 (stars) seed = -1 is not valid: expected a "
+         "whole number >= 0"),
+        ("type = 'checker'\nn_lon = 1000000", "[[sky]] #1 (checker) n_lon = 1000000 is not "
+         "valid: expected a whole number from 1 to 100000"),
+        ("type = 'star'\nsigma_deg = 180.00000000001", "[[sky]] #1 (star) sigma_deg = "
+         "180.00000000001 is not valid: expected a number in (0, 180) (degrees)"),
+    ],
+)  # fmt: skip
+def test_every_bad_scene_key_is_named_with_its_real_range(tmp_path, capsys, monkeypatch, sky,
+                                                          message):  # fmt: skip
+    no_render(monkeypatch)
+    (tmp_path / "s.toml").write_text(f"[[sky]]\n{sky}\n")
+    code, _, err = run(["render", str(tmp_path / "s.toml"), "-o", str(tmp_path / "o.png")],
+                       capsys)  # fmt: skip
+    assert code == 2 and message in one_error_line(err)
+
+
+def test_scene_keys_give_the_range_that_is_checked(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["render", "--scene-keys"])
+    out = capsys.readouterr().out
+    assert "  n_lon = 24    # a whole number from 1 to 100000\n" in out
+    assert "  seed = 0    # a whole number >= 0\n" in out
+    assert "  width = 960    # a whole number from 1 to 1048575 (pixels)\n" in out
+
+
+def test_a_fov_that_float32_rounds_to_180_renders_in_float64(tmp_path, capsys, monkeypatch):
+    # 179.99999999 degrees is in (0, 180) but is pi in float32: the camera refused it
+    # as "fov=180.0". The pixels are computed in float64 instead, as for a distance
+    # float32 cannot tell from 1.
+    import numpy as np
+
+    seen = []
+
+    def render(scene, **kwargs):
+        seen.append(scene.camera.fov.dtype)
+        return np.zeros((scene.camera.height, scene.camera.width, 3), np.float32)
+
+    monkeypatch.setattr(jl, "render", render)
+    args = ["render", "--size", "16x12", "--fov-deg", "179.99999999", "-o", str(tmp_path / "o.exr")]
+    code, out, err = run(args, capsys)
+    assert code == 0, err
+    assert seen == [np.float64] and "FOV = 179.99999999 deg" in out
+
+
+@pytest.mark.parametrize(
+    "extra,message",
+    [
+        (["--path", "pan", "--start", "1e300"], "--start 1e+300 is not valid: expected a finite "
+         "number (degrees), at most 1e+30 in magnitude"),
+        (["--path", "orbit", "--stop", "-1e300"], "--stop -1e+300 is not valid"),
+        (["--path", "approach", "--start", "1e300"], "--start 1e+300 is not valid: expected a "
+         "finite number > 1 (units of R_S), at most 1e+30 in magnitude"),
+        (["--path", "approach", "--stop", "-inf"], "--stop -inf is not valid: expected a finite "
+         "number > 1 (units of R_S)"),
+        (["--path", "zoom", "--start", "180"], "--start 180.0 is not valid: expected a number "
+         "in (0, 180) (degrees)"),
+        (["--frames", "-1"], "--frames -1 is not valid: expected a whole number from 1 to 10000"),
+        (["--fps", "-inf"], "--fps -inf is not valid: expected a number in (0, 1000)"),
+        (["{scene}"], "s.toml: [animation] (approach) start = 0.5 is not valid: expected a "
+         "finite number > 1 (units of R_S)"),
+    ],
+)  # fmt: skip
+def test_animation_paths_are_checked_before_rendering(tmp_path, capsys, monkeypatch, extra,
+                                                      message):  # fmt: skip
+    import warnings
+
+    no_render(monkeypatch)
+    (tmp_path / "s.toml").write_text("[animation]\nstart = 0.5\n")
+    extra = [e.format(scene=tmp_path / "s.toml") for e in extra]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning of an overflow on the way
+        code, _, err = run(["animate", "--size", "16x12", *extra, "-o", f"{tmp_path}/a.gif"],
+                           capsys)  # fmt: skip
+    assert code == 2 and message in one_error_line(err, "animate")
+    assert os.listdir(tmp_path) == ["s.toml"]
