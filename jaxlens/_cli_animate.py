@@ -2,7 +2,6 @@
 pan, zoom), and optionally its frames as image files. Frames are rendered in batched
 compiled calls of one size and streamed to the files as they come."""
 
-import json
 import math
 import time
 from pathlib import Path
@@ -135,9 +134,8 @@ def run(args):
     with tqdm(total=frames, desc="animate", unit="frame", delay=2.0, leave=False,
               disable=index != 0) as bar:  # fmt: skip
         if args.distributed:
-            key = json.dumps([scene, kind, values.tolist(), str(np.dtype(dtype))],
-                             sort_keys=True, default=str)  # fmt: skip
-            stage = _multi.Stage(out, "frames", key)
+            settings = [scene, kind, values.tolist(), str(np.dtype(dtype))]
+            stage = _multi.Stage(out, "frames", settings)
             earlier = stage.finished()
             groups = [range(lo, min(lo + group, frames)) for lo in range(0, frames, group)]
             stage.fill(groups, lambda g: render_group(groups[g].start), index, count, bar)

@@ -213,14 +213,11 @@ def run(args):
     cli.status("rendering (compiling on first use)")
     if args.distributed:
         # Every process renders its share of the blocks into a folder beside the output,
-        # named for the scene (a rerun reuses what a failed one finished); process 0
-        # puts the image together and writes it.
-        import json
-
+        # named for the scene and its input files (a rerun reuses what a failed one
+        # finished of the same work); process 0 puts the image together and writes it.
         from ._render import render_share
 
-        key = json.dumps([v, str(scene.camera.dtype)], sort_keys=True, default=str)
-        stage = _multi.Stage(out, "blocks", key)
+        stage = _multi.Stage(out, "blocks", [v, str(scene.camera.dtype)])
         img = render_share(scene, stage, index, count)
         if img is None:
             return 0  # process 0 writes the image
