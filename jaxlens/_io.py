@@ -369,7 +369,7 @@ def _write_failure(path, e: OSError) -> OSError:
     writing PATH" (the `errno` kept) for a full disk or quota; others as they are."""
     reason = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
               errno.EFBIG: "file too large for the file system"}.get(e.errno)  # fmt: skip
-    if reason is None:
+    if reason is None or str(e).startswith(reason):  # (said so already)
         return e
     err = OSError(f"{reason} writing {_shown(path)}")
     err.errno = e.errno
@@ -391,7 +391,10 @@ def atomic_output(path):
     path = Path(path)
     for stale in stale_temporaries(path.parent, path.stem):
         remove_temporary(stale)
-    fd, tmp = _locked_temporary(path.parent, path.stem, path.suffix)
+    try:
+        fd, tmp = _locked_temporary(path.parent, path.stem, path.suffix)
+    except OSError as e:  # no inode left, too
+        raise _write_failure(path, e) from e
     try:
         yield str(tmp)
         # mkstemp makes the file private (0600); give it the mode a plain open() would.
@@ -616,7 +619,12 @@ def frame_folder(folder, fmt: str = "png"):
             name = f"frame_{i:04d}.{fmt}"
             _check_not_users(folder, name, ours)
             names.append(name)
-            write_image(staging / name, image, exposure=exposure)
+            try:
+                write_image(staging / name, image, exposure=exposure)
+            except OSError as e:  # named as the frame, not as its hidden staging file
+                if e.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                    raise
+                raise _write_failure(folder / name, OSError(e.errno, "")) from e
 
         yield save
         for name in names:  # (one may have come since its frame was rendered)
