@@ -336,3 +336,25 @@ def test_exposures_dtypes_and_loops_out_of_range_are_refused(tmp_path):
             jl.write_gif(tmp_path / "a.gif", frames, loop=loop)
     assert os.listdir(tmp_path) == []
     jl.write_gif(tmp_path / "a.gif", frames, loop=65535)  # the largest count is fine
+
+
+def test_clean_while_an_animation_writes_its_frames_leaves_them(tmp_path, capsys, monkeypatch):
+    # The hidden folder the frames are written to is locked while the command runs: a
+    # `jaxlens clean` meanwhile (another terminal) leaves it, and the frames arrive.
+    frames_dir, render, cleaned = tmp_path / "f", jl.render, []
+
+    def render_then_clean(scene, **kw):
+        images = render(scene, **kw)
+        if frames_dir.exists():  # (made before the first frame is saved)
+            cleaned.append(cli.main(["clean", str(frames_dir)]))
+        return images
+
+    monkeypatch.setattr(jl, "render", render_then_clean)
+    args = ["animate", "--sky", "checker", "--size", "16x12", "--frames", "3", "--path", "orbit",
+            "--supersample", "1", "-o", str(tmp_path / "a.gif"),
+            "--frames-dir", str(frames_dir)]  # fmt: skip
+    code, out, err = run(args, capsys)
+    assert code == 0 and cleaned == [0] and "no stale temporary files" in out, err
+    assert sorted(os.listdir(frames_dir)) == [".jaxlens-frames.json"] + [
+        f"frame_000{i}.png" for i in range(3)
+    ]
