@@ -239,7 +239,9 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     dtype = alpha.dtype
     u0 = 1.0 / distance
     omu0 = (distance - 1.0) / distance  # 1 - u0 without cancellation next to the horizon
-    e0 = (3.0 - 2.0 * distance) / (3.0 * distance)  # u0 - 2/3, exact near D = 1.5
+    # u0 - 2/3: exact near D = 1.5 in the first form, which overflows (3 D) for a far
+    # camera, where the second loses nothing.
+    e0 = jnp.where(distance < 4.0, (3.0 - 2.0 * distance) / (3.0 * distance), u0 - 2.0 / 3.0)
     sa, ca = jnp.abs(jnp.sin(alpha)), jnp.cos(alpha)
     root = u0 * jnp.sqrt(omu0)
     b = sa / root
@@ -255,7 +257,8 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     a_ps = (3.0 * e0) ** 2 * (3.0 * u0 + 1.0) / 4.0
     use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
     kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
-    kappa_b = (b_ - B_CRIT) * (b_ + B_CRIT) / (b_ * b_)
+    # Each factor divided by b on its own: b^2 overflows for far cameras (b ~ D).
+    kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
     kappa = jnp.where(use_e, kappa_e, kappa_b)
     turning = (kappa > 0) & ~small
     # Signed du/dphi at the camera: sqrt(G(u0)) = u0 sqrt(1 - u0) cot(alpha).

@@ -59,6 +59,7 @@ def _finish(u, v, target):
     total = jnp.zeros_like(u)
     for x, w in zip(_GL_X, _GL_W):
         uu = u + x * du
-        g = v * v + (u - uu) * (u + uu) - (u - uu) * (u * u + u * uu + uu * uu)
-        total = total + w / (sgn * jnp.sqrt(jnp.maximum(g, v * v * 1e-6)))
-    return total * du
+        # v(uu)^2 / v^2, no v^2 (it underflows for a far camera in float32, v ~ 1/D)
+        g = 1.0 + ((u - uu) / v) * (((u + uu) - (u * u + u * uu + uu * uu)) / v)
+        total = total + w / jnp.sqrt(jnp.maximum(g, 1e-6))
+    return total * du / (sgn * jnp.abs(v))

@@ -21,6 +21,7 @@ from ._util import (
     OLDER_CPU_FUSION,
     SIDE_PROGRAM,
     compile_ahead,
+    concrete,
     filter_jit_cpu,
     has_tracer,
     to_device,
@@ -336,6 +337,18 @@ def _eager(method, alpha, distance, dtype, max_windings):
     return jax.tree.map(lambda x: x[:n].reshape(shape), out)
 
 
+METHODS = ("auto", "exact", "table", "euler", "rk4", "dopri5")
+
+
+def _check_number(name: str, value, valid: str, ok) -> None:
+    """ValueError (TypeError for a non-number) unless `value` is a finite real number
+    for which `ok(value)` holds; `valid` says the range."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise TypeError(f"{name}={_show(value)} must be a real number {valid}")
+    if not (math.isfinite(value) and ok(value)):
+        raise ValueError(f"{name}={_show(value)} must be finite and {valid}")
+
+
 def method_for(name: str, accuracy: float) -> AbstractMethod:
     """Resolve a method name and a requested accuracy (radians) into a setting."""
     if name in ("auto", "exact"):
@@ -350,26 +363,85 @@ def method_for(name: str, accuracy: float) -> AbstractMethod:
     if name == "dopri5":
         return DormandPrince(tol=max(accuracy / _DOPRI_ERR_COEF, 1e-14))
     raise ValueError(
-        f"method={name!r} is not one of 'auto', 'exact', 'table', 'euler', 'rk4', 'dopri5' "
+        f"method={_show(name)} is not one of {', '.join(map(repr, METHODS))} "
         "(or an AbstractMethod instance)"
     )
 
 
+# The largest camera distance accepted (units of R_S), in float32 and float64: the bound
+# of the CLI and of scene files (`_schema.MAGNITUDE_MAX`). Both dtypes' geometry is
+# finite and accurate up to it (tests/test_checks.py); float32 fails near 1e37, where
+# 1/D leaves its normal range, float64 near 1e300. 1e30 R_S is 3e36 m for a solar mass.
+MAX_DISTANCE = 1e30
+
+# The dtypes rays are traced in (float16 and bfloat16 overflow in the closed forms).
+FLOAT_DTYPES = ("float32", "float64")
+
+_DISTANCE_RANGE = (
+    f"finite, > 1 and <= {MAX_DISTANCE:g} (units of R_S: the horizon is at 1, "
+    f"{MAX_DISTANCE:g} is the largest supported)"
+)
+
+
+def _show(value, limit: int = 80) -> str:
+    """`value` as an error message shows it: its repr, cut to `limit` characters."""
+    if isinstance(value, np.ndarray | np.generic) and value.ndim == 0:
+        value = value.item()  # np.float64(2.0) shown as 2.0
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _check_real(name: str, x) -> None:
+    """TypeError unless `x` holds real numbers (integers are converted; complex, bool,
+    text and objects are not), naming `name` and the value."""
+    try:
+        kind = np.dtype(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
+    except (TypeError, ValueError):
+        kind = np.dtype(object)
+    if kind.kind not in "iuf":
+        raise TypeError(f"{name}={_show(x)} must be real numbers (float or int), got dtype {kind}")
+
+
+def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
+    """The float dtype rays are computed in, or a TypeError naming `what` (e.g.
+    "dtype", or "alpha and distance"): float32 or float64 only."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        dt = None
+    if dt is None or dt.name not in FLOAT_DTYPES:
+        shown = dt.name if dt is not None else _show(dtype)
+        raise TypeError(
+            f"{what}: {shown} is not supported, use float32 or float64 (lower precisions "
+            "overflow in the geometry; float64 needs jax_enable_x64)"
+        )
+    return dt
+
+
 def _check_distance(distance, dtype=None):
-    """ValueError for a concrete bad distance, also one that is > 1 as given but rounds
-    to the horizon in `dtype` (the dtype the rays are traced in); eqx.error_if under
-    jit."""
+    """ValueError for a concrete bad distance: not finite, <= 1, beyond `MAX_DISTANCE`,
+    or > 1 as given but rounded to the horizon in `dtype` (the dtype the rays are traced
+    in); eqx.error_if under jit."""
     try:
         d = np.asarray(distance)
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
         d = None
     if d is not None:
+        _check_real("distance", d)
+        # The bound as the given dtype rounds it (float32(1e30) is 1.0000000150e30).
+        top = float(np.asarray(MAX_DISTANCE, d.dtype if d.dtype.kind == "f" else np.float64))
+        d = d.astype(np.float64)
         bad = ~np.isfinite(d) | ~(d > 1.0)
         if np.any(bad):
-            value = d[bad].flat[0]
             raise ValueError(
-                f"distance={value!r} is not a valid camera radius: it must be "
-                "finite and > 1 (units of R_S, the horizon is at 1)"
+                f"distance={_show(d[bad].flat[0])} is not a valid camera radius: it must be "
+                + _DISTANCE_RANGE
+            )
+        if np.any(d > top):
+            raise ValueError(
+                f"distance={_show(d[d > top].flat[0])} is beyond the largest "
+                f"supported, {MAX_DISTANCE:g} R_S (float32 and float64): it must be "
+                + _DISTANCE_RANGE
             )
         rounded = d if dtype is None else d.astype(dtype)
         if np.any(~(rounded > 1.0)):
@@ -382,9 +454,31 @@ def _check_distance(distance, dtype=None):
         return distance
     return eqx.error_if(
         distance,
-        ~jnp.isfinite(distance) | ~(distance > 1.0),
-        "distance must be finite and > 1 (units of R_S, the horizon is at 1)",
+        ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > MAX_DISTANCE),
+        "distance must be finite and > 1 (units of R_S, the horizon is at 1), and at most "
+        f"{MAX_DISTANCE:g}",
     )
+
+
+_ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"
+
+
+def _bad_alpha(alpha):
+    """ValueError for a concrete local angle outside [0, pi] (NaN included); for traced
+    ones, the predicate (one comparison a ray) that `trace` puts on its result with
+    `eqx.error_if`, so that the rays do not wait for the check. `None` when checked."""
+    a = concrete(alpha)
+    if a is not None:
+        top = np.asarray(np.pi, a.dtype) if a.dtype.kind == "f" else np.pi
+        bad = ~((a >= 0) & (a <= top))
+        if np.any(bad):
+            raise ValueError(
+                f"alpha={_show(a[bad].flat[0])} is not a valid local angle: it must be "
+                + _ALPHA_RANGE
+            )
+        return None
+    top = jnp.asarray(np.pi, jnp.result_type(float, alpha))
+    return jnp.any(~((alpha >= 0) & (alpha <= top)))
 
 
 def trace(
@@ -401,8 +495,9 @@ def trace(
     **Arguments:**
     - `alpha`: local angle of each ray from the inward radial direction, radians
       in $[0, \\pi]$ (0 points at the hole, $\\pi$ straight away).
-    - `distance`: camera radius $D > 1$ (units of R_S). Broadcasts with `alpha`.
-    - `accuracy`: target absolute error of `phi` (radians); picks the cheapest
+    - `distance`: camera radius $1 < D \\le 10^{30}$ (units of R_S, `MAX_DISTANCE`;
+      also > 1 after rounding to the rays' dtype). Broadcasts with `alpha`.
+    - `accuracy`: target absolute error of `phi` (radians, finite, > 0); picks the cheapest
       setting of the method that met it in the measured ladder. Rays within
       relative $\\delta$ of the critical angle are limited by conditioning to
       about $\\epsilon / \\delta$ whatever the method.
@@ -410,7 +505,7 @@ def trace(
       `"exact"`), `"exact"`, `"table"` (one distance for all
       rays: interpolate a `RayMap`), `"euler"`, `"rk4"`, `"dopri5"`, or an
       `AbstractMethod` instance (e.g. `RK4(dphi=0.01)`).
-    - `max_windings`: budget of windings; rays sweeping more than
+    - `max_windings`: budget of windings (finite, > 0); rays sweeping more than
       $2\\pi \\times$ this are `UNRESOLVED`.
     - `throw`: if True, raise (eagerly, or at run time under `jit`, through
       `eqx.error_if`) with the message of `RayStatus.unresolved` when any ray is
@@ -418,6 +513,11 @@ def trace(
 
     **Returns:** a `TraceResult` (`phi`, `status`, `r_min`, and the properties
     `captured`, `escaped`, `unresolved`, `half_turns`) of the broadcast shape.
+
+    Bad values raise: a `TypeError` for a complex, boolean or text `alpha` or
+    `distance`, a lower precision than float32, or a `method` that is not a name or
+    an `AbstractMethod`; a `ValueError` naming the value for one out of range, eagerly,
+    and under `jit` at run time (`eqx.error_if`: one comparison a ray for `alpha`).
 
     Works under `jit`, `vmap` and `grad` (both modes) for escaping rays, in
     float32 and float64 (the dtype of the inputs; float64 needs
@@ -427,16 +527,18 @@ def trace(
     distance as two, the table's and the look-up's, and the tables of the last 16
     distances are kept for the next call at one of them.
     """
-    if not (accuracy > 0):
-        raise ValueError(f"accuracy={accuracy!r} must be > 0 (radians)")
-    if not max_windings > 0:
-        raise ValueError(f"max_windings={max_windings!r} must be > 0")
-    for name, x in (("alpha", alpha), ("distance", distance)):
-        kind = np.dtype(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
-        if kind.kind not in "iuf":  # integers are converted; complex, bool, text are not
-            raise TypeError(f"{name} must be real numbers, got dtype {kind}")
-    dtype = jnp.result_type(float, alpha, distance)
+    _check_number("accuracy", accuracy, "> 0 (radians)", lambda v: v > 0)
+    _check_number("max_windings", max_windings, "> 0 (turns)", lambda v: v > 0)
+    if not isinstance(method, str | AbstractMethod):
+        raise TypeError(
+            f"method={_show(method)} must be one of {', '.join(map(repr, METHODS))} or an "
+            "AbstractMethod instance (e.g. jl.RK4(dphi=0.01))"
+        )
+    _check_real("alpha", alpha)
+    _check_real("distance", distance)
+    dtype = _check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
     distance = _check_distance(distance, dtype)
+    bad_alpha = _bad_alpha(alpha)
     traced = tracing() or has_tracer(alpha, distance)
     # Host distances stay on the host (padded there by `_eager`, nothing compiled).
     distance = (jnp if isinstance(distance, jax.Array) else np).asarray(distance, dtype)
@@ -448,6 +550,9 @@ def trace(
         result = method(jnp.asarray(alpha, dtype), distance, max_windings)
     else:  # host rays are padded on the host, not copied to the device first
         result = _eager(method, alpha, distance, dtype, max_windings)
+    if bad_alpha is not None:
+        phi = eqx.error_if(result.phi, bad_alpha, "alpha must be " + _ALPHA_RANGE)
+        result = eqx.tree_at(lambda r: r.phi, result, phi)
     if throw:
         phi = RayStatus.unresolved.error_if(result.phi, jnp.any(result.unresolved))
         result = eqx.tree_at(lambda r: r.phi, result, phi)

@@ -26,13 +26,15 @@ WEAK_MAX_SAMPLES = 1 << 17
 
 
 def _periapsis_u(b):
-    """$u_2 = 1/r_0$: the smallest positive root of $u^2 - u^3 = 1/b^2$, by Newton from
-    $1/b$ (four steps reach round-off for $u_2 < 0.1$, where the series is used)."""
-    c = 1.0 / (b * b)
-    u = 1.0 / b
+    """$u_2 = 1/r_0$: the smallest positive root of $u^2 - u^3 = 1/b^2$, by Newton on
+    $w = u b$, $w^2 (1 - w/b) = 1$, from $w = 1$ (four steps reach round-off for
+    $u_2 < 0.1$, where the series is used; no $b^2$, which overflows for far cameras)."""
+    ib = 1.0 / b
+    w = jnp.ones_like(b)
     for _ in range(4):
-        u = u - (u * u * (1.0 - u) - c) / (u * (2.0 - 3.0 * u))
-    return u
+        wb = w * ib
+        w = w - (w * w * (1.0 - wb) - 1.0) / (w * (2.0 - 3.0 * wb))
+    return w * ib
 
 
 def weak_field_terms(y0, c0=None):
@@ -91,10 +93,10 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
     y0 = jnp.clip(u0 / u2, 0.0, 1.0)
     # cos t0 from u2 - u0 = G(u0) / [(u2 + u0) - (u2^2 + u2 u0 + u0^2)], G(u0) =
     # u0^2 (1 - u0) cot^2(alpha): no cancellation for a camera near the periapsis.
+    # Written as (u0 / u2) |cot| sqrt(...): u0^2 underflows for far cameras in float32.
     cot = ca / jnp.where(ok, sa, 1.0)
-    g0 = u0 * u0 * ((d - 1.0) / d) * cot * cot
-    du = g0 / ((u2 + u0) - (u2 * u2 + u2 * u0 + u0 * u0))
-    c0 = jnp.sqrt(jnp.clip(du * (u2 + u0), 0.0, None)) / u2
+    den = (u2 + u0) - (u2 * u2 + u2 * u0 + u0 * u0)
+    c0 = (u0 / u2) * jnp.abs(cot) * jnp.sqrt(jnp.clip(((d - 1.0) / d) * (u2 + u0) / den, 0.0, None))
     t0, terms = weak_field_terms(y0, jnp.minimum(c0, 1.0))
     phi_t = sum(_C[n] * u2**n * terms[n] for n in range(order + 1))
     phi_h = sum(_C[n] * u2**n * _I_HALF[n] for n in range(order + 1))

@@ -96,3 +96,69 @@ def test_the_issue_reproduction_now_raises():
     f = jax.jit(lambda d: jl.render_array(jl.Camera(d, 1.0, 4, 4), SKY))
     with pytest.raises(Exception, match="camera distance must be finite and > 1"):
         jax.block_until_ready(f(0.5))
+
+
+# ---------------------------------------------------------------- the ray-level API
+
+_trace_jit = jax.jit(lambda a, d: jl.trace(a, d).phi)
+
+
+@pytest.mark.parametrize("distance", [1e300, np.float32(1e35), 1e31])
+def test_trace_refuses_a_distance_beyond_the_largest_supported(distance):
+    # float64 1e300 (and float32 1e39) gave every ray "unresolved" and a RuntimeWarning.
+    message = r"distance=1\.?\d*e\+3\d+ is beyond the largest supported, 1e\+30 R_S"
+    with pytest.raises(ValueError, match=message):
+        jl.trace(0.5, distance)
+    with pytest.raises(Exception, match=r"distance must be finite and > 1 .* at most 1e\+30"):
+        jax.block_until_ready(_trace_jit(jnp.asarray([0.5]), distance))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_trace_is_accurate_up_to_the_largest_distance(dtype):
+    # float32 overflowed in b^2 (the closed form) and underflowed in u'^2 (the
+    # integrators' last step) beyond D ~ 1e19: every ray unresolved. At D = 1e30 the
+    # deflection 2/b is below float32's resolution: phi = pi - alpha to a few ulps of pi.
+    # RK4 at the default accuracy 1e-6 takes ~70 steps of 0.044 rad, each rounded in
+    # the dtype: 1e-6 + 70 eps pi.
+    alpha = np.asarray([1e-6, 0.5, 1.5, 2.5], dtype)
+    eps = np.finfo(dtype).eps
+    for d in (np.asarray(1e30, dtype), np.asarray(1e20, dtype)):
+        # flat space plus the weak-field deflection 2/b (2e-14 at b = 1e14)
+        a64 = alpha.astype(np.float64)
+        want = np.pi - a64 + 2.0 / (float(d) * np.sin(a64))
+        for method, tol in (("exact", 8 * eps * np.pi), ("table", 1e-6 + 8 * eps * np.pi),
+                            ("rk4", 1e-6 + 70 * eps * np.pi)):  # fmt: skip
+            r = jl.trace(alpha, d, method=method)
+            assert np.all(np.asarray(r.escaped)), (d, method)
+            np.testing.assert_allclose(np.asarray(r.phi), want, atol=tol, rtol=0)
+        phi, bound = jl.weak_field_escape_angle(alpha[1:], d)
+        assert np.all(np.abs(np.asarray(phi) - want[1:]) <= np.asarray(bound) + 4 * eps)
+
+
+def test_trace_refuses_a_nan_or_out_of_range_alpha():
+    # A NaN alpha was "unresolved" with a message about the winding budget.
+    for alpha in (math.nan, -0.1, 3.2, math.inf):
+        with pytest.raises(ValueError, match=r"alpha=.* is not a valid local angle: it must "
+                           r"be in \[0, pi\] radians"):  # fmt: skip
+            jl.trace(np.asarray([0.5, alpha]), 10.0)
+    # pi itself, in float32 (rounded up from pi) and float64, is a ray straight away.
+    for dtype in (np.float32, np.float64):
+        assert np.all(np.asarray(jl.trace(np.asarray([0, np.pi], dtype), 10.0).escaped)[1:])
+    with pytest.raises(Exception, match=r"alpha must be in \[0, pi\] radians"):
+        jax.block_until_ready(_trace_jit(jnp.asarray([0.5, math.nan]), 10.0))
+
+
+def test_trace_refuses_wrong_types_by_name():
+    with pytest.raises(TypeError, match=r"method=5 must be one of 'auto', 'exact'.*"
+                       "AbstractMethod"):  # fmt: skip
+        jl.trace(0.5, 10.0, method=5)
+    with pytest.raises(TypeError, match=r"distance=\(10\+1j\) must be real numbers"):
+        jl.trace(0.5, 10.0 + 1j)
+    with pytest.raises(TypeError, match=r"alpha='x' must be real numbers"):
+        jl.trace("x", 10.0)
+    with pytest.raises(TypeError, match=r"dtype of alpha and distance: float16 is not "
+                       "supported, use float32 or float64"):  # fmt: skip
+        jl.trace(np.float16(0.5), np.float16(10.0))
+    for name, value in (("accuracy", math.nan), ("max_windings", math.inf)):
+        with pytest.raises(ValueError, match=f"{name}=(nan|inf) must be finite and > 0"):
+            jl.trace(0.5, 10.0, **{name: value})
