@@ -119,11 +119,12 @@ def _shown_value(value) -> str:
 
 
 def _check_real(array: np.ndarray, what: str) -> np.ndarray:
-    """`array` unless its values are not real numbers (complex, object, strings, bool):
-    then `ValueError` naming its dtype."""
-    if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
+    """`array` unless its values are not real numbers (complex, object, strings): then
+    `ValueError` naming its dtype. Booleans are 0 and 1."""
+    real = np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_
+    if not real or np.iscomplexobj(array):
         raise ValueError(f"{what} of dtype {array.dtype} is not valid: expected real numbers "
-                         "(an integer or floating-point array)")  # fmt: skip
+                         "(an integer, floating-point or boolean array)")  # fmt: skip
     return array
 
 
@@ -915,14 +916,14 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
     if inp is None:
         msg = " ".join((oiio.geterror() or said[0]).split()) or "unknown format"
         raise ValueError(f"{_shown(path)} is not a readable image: {msg[:500]}")
-    said = [""]
+    warned = said[0]
     try:
         spec = inp.spec()
         # Refused before reading when its pixels and the copies its readers make (the
         # float32 read, the linear decode, the fit's float64: ~24 bytes a value) would
         # not fit: a small file can hold a huge image (a 1.5 MB PNG of 40000 x 40000).
         _check_memory(24 * spec.width * spec.height * spec.nchannels,
-                      f"{str(path)!r} is {spec.width} x {spec.height} pixels x "
+                      f"{_shown(path)} is {spec.width} x {spec.height} pixels x "
                       f"{spec.nchannels} channels: reading it needs")  # fmt: skip
         with _native_stderr() as said:
             data = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
@@ -939,8 +940,8 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
         msg = " ".join((err or said[0] or "no pixel data").split())
         raise ValueError(f"{_shown(path)} is not a readable image (truncated or corrupt?): "
                          f"{msg[:500]}")  # fmt: skip
-    if said[0]:  # a warning of a file read well (libpng's about a colour profile): as before
-        os.write(2, said[0].encode())
+    if warned + said[0]:  # warnings of a file read well (libpng's of a colour profile)
+        os.write(2, (warned + said[0]).encode())
     data = np.asarray(data, np.float32)
     if data.ndim == 2:
         data = data[..., None]
