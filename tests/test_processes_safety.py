@@ -74,6 +74,7 @@ def test_runs_to_one_output_keep_off_each_others_work_and_end_with_their_launche
     # Run X: process 1 held once it has joined, process 0 finishes its 2 frames and
     # waits for the others.
     x = _start(anim, env)
+    other = same = x
     try:
         _until(lambda: list(out.parent.glob(".a.gif.frames-*")), "the stage folder")
         (stage,) = out.parent.glob(".a.gif.frames-*")
@@ -81,17 +82,16 @@ def test_runs_to_one_output_keep_off_each_others_work_and_end_with_their_launche
         os.kill(workers[1], signal.SIGSTOP)
         _until(lambda: len(list(stage.glob("0*.npy"))) >= 2, "process 0's frames")
 
-        # Another animation to the same file finishes meanwhile: X's folder stays.
-        other = subprocess.run([sys.executable, "-m", "jaxlens", *anim, "--exposure", "1"],
-                               env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
-        assert other.returncode == 0, other.stderr[-3000:]
+        # Meanwhile (both at once) another animation to the same file finishes and
+        # leaves X's folder alone, and the same animation to it is refused at once,
+        # naming X's launcher.
+        other = _start([*anim, "--exposure", "1"], env)
+        same = _start(anim, env)
+        other_err, same_err = (run.communicate(timeout=300)[1] for run in (other, same))
+        assert other.returncode == 0, other_err[-3000:]
         assert sorted(p.name for p in stage.glob("0*.npy")) == ["00000.npy", "00001.npy"]
-
-        # The same animation to the same file is refused at once, naming X's launcher.
-        same = subprocess.run([sys.executable, "-m", "jaxlens", *anim], env=env,
-                              capture_output=True, text=True, timeout=300)  # fmt: skip
-        assert same.returncode == 2, same.stderr[-3000:]
-        assert _last_line(same.stderr) == (
+        assert same.returncode == 2, same_err[-3000:]
+        assert _last_line(same_err) == (
             f"jaxlens animate: error: another jaxlens run is writing {out} (pid {x.pid}); "
             "wait for it or choose another output")  # fmt: skip
         assert stage.is_dir()
@@ -101,15 +101,16 @@ def test_runs_to_one_output_keep_off_each_others_work_and_end_with_their_launche
         os.kill(x.pid, signal.SIGTERM)
         err = x.communicate(timeout=60)[1]
     finally:
-        x.kill()
+        for run in (x, other, same):
+            run.kill()
     assert x.returncode == 128 + signal.SIGTERM, err
     assert _last_line(err) == (
         f"jaxlens animate: terminated; nothing was written to {out}; 2 of 4 frames finished "
         f"are kept in {stage}: rerun the same command to continue")  # fmt: skip
     assert not any(_alive(pid) for pid in workers.values())
 
-    # Run W continues from them; SIGKILLed once it holds the folder (process 0 has
-    # joined and the others work), its processes end within seconds.
+    # Run W takes the folder over; SIGKILLed once it holds it (process 0 has joined and
+    # the others work), its processes end within seconds.
     w = _start(anim, env)
     try:
         lock = stage / "lock"
@@ -127,6 +128,13 @@ def test_runs_to_one_output_keep_off_each_others_work_and_end_with_their_launche
         for pid in _children(w.pid).values():
             os.kill(pid, signal.SIGKILL)
     assert sorted(p.name for p in stage.glob("0*.npy"))[:2] == ["00000.npy", "00001.npy"]
+
+    # The same command again continues from the frames kept, and leaves only its output.
+    again = subprocess.run([sys.executable, "-m", "jaxlens", *anim], env=env,
+                           capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "frames from an earlier run" in again.stdout, again.stdout
+    assert [p.name for p in out.parent.iterdir()] == ["a.gif"]
 
 
 def test_processes_are_bounded_by_the_cores_and_the_memory(tmp_path, capsys):
