@@ -303,7 +303,7 @@ def _locked(path: Path) -> bool:
         return True
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:  # BlockingIOError: held by a writer
+    except OSError:  # BlockingIOError: held by a writer (ENOLCK: cannot know)
         return True
     finally:
         os.close(fd)  # (and with it the lock just taken)
@@ -354,7 +354,10 @@ def _locked_temporary(folder: Path, stem: str, suffix: str, directory: bool = Fa
     else:
         fd, new = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        # (A file system without locks, ENOLCK: written all the same; `_locked` then
+        # takes its temporaries for held, and nothing there is removed as stale.)
+        with contextlib.suppress(OSError):
+            fcntl.flock(fd, fcntl.LOCK_EX)
         rest = Path(new).name[len(prefix) :]  # RANDOM SUFFIX
         path = Path(folder) / f".{stem}{_TMP_TAG}{_host()}.{os.getpid()}.{rest}"
         os.rename(new, path)
