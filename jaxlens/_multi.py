@@ -49,10 +49,11 @@ _SLICE = 1.0
 # How many processes `--processes` may start. The work is CPU-bound and XLA already
 # spreads one process's work over the cores: beyond the cores processes only take
 # turns, and two a core leave room for the single-threaded moments (compiles, process
-# 0 writing). Each costs memory: a process of a small render holds about 415 MiB at
-# its peak (VmHWM, JAX 0.10 on x86-64 Linux: 243 MiB for JAX alone, the rest its
-# compiled programs and block), so N processes must find N x 400 MiB available (a
-# render's own workspace is checked by each process beside it).
+# 0 writing). Each costs memory: a process of a small render or animation (32 x 16)
+# peaks at 325 to 432 MiB (VmHWM of the workers of `--processes 2`, JAX 0.10 on x86-64
+# Linux, compiled programs loaded or compiled; 243 MiB for JAX alone), so N processes
+# must find N x 400 MiB available (a render's own workspace is checked by each process
+# beside it).
 PER_CORE = 2
 PROCESS_MEMORY = 400 << 20
 
