@@ -232,7 +232,7 @@ def worker_argv(argv: list[str], command: str) -> list[str]:
 def check_processes(processes: int) -> None:
     """`ValueError`, naming the numbers, unless this machine can hold `processes`
     processes of a job: 1 to `PER_CORE` times the CPU cores this process may use, and
-    `PROCESS_MEMORY` each within the memory available."""
+    `PROCESS_MEMORY` each within the memory it can take (`_io.available_memory`)."""
     from . import _io
 
     if processes < 1:
@@ -242,12 +242,11 @@ def check_processes(processes: int) -> None:
         raise ValueError(f"--processes {processes} is more than this machine can run: it has "
                          f"{cores} CPU core{'s' if cores > 1 else ''} for this command, "
                          f"expected at most {PER_CORE * cores} ({PER_CORE} a core)")  # fmt: skip
-    have = _io.available_memory()
-    need = processes * PROCESS_MEMORY
-    if have is not None and need > have:
-        raise ValueError(f"--processes {processes} needs about {need / 2**30:.1f} GiB "
-                         f"({PROCESS_MEMORY >> 20} MiB a process) and {have / 2**30:.1f} GiB "
-                         f"is available: expected at most {have // PROCESS_MEMORY}")  # fmt: skip
+    # Against the least of what the system, the cgroup and this process's own limits
+    # leave (the processes inherit those): a bound that errs on the side of refusing.
+    _io._check_memory(processes * PROCESS_MEMORY, f"--processes {processes}: {processes} "
+                      f"processes of {PROCESS_MEMORY >> 20} MiB each need",
+                      ": run fewer processes")  # fmt: skip
 
 
 def _cores() -> int:

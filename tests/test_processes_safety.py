@@ -10,6 +10,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from jaxlens import cli
 
 
@@ -150,3 +152,28 @@ def test_processes_are_bounded_by_the_cores_and_the_memory(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
     code = cli.main(["render", "--size", "16x12", "-o", str(out), "--processes", "0"])
     assert code == 2 and "--processes 0 is not valid: expected 1 or more" in capsys.readouterr().err
+
+
+def test_processes_are_bounded_by_the_memory_this_command_can_take(tmp_path, capsys):
+    import resource
+
+    # An address-space limit that leaves this process 600 MiB: 2 processes of 400 MiB
+    # do not fit (set only while the command checks its options: nothing is launched).
+    with open("/proc/self/status") as f:
+        mapped = next(int(s.split()[1]) for s in f if s.startswith("VmSize:")) * 1024
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = mapped + (600 << 20)
+    if hard != resource.RLIM_INFINITY and hard < limit:
+        pytest.skip(f"the hard address-space limit ({hard} bytes) is below {limit}")
+    out = tmp_path / "a.png"
+    resource.setrlimit(resource.RLIMIT_AS, (limit, hard))
+    try:
+        code = cli.main(["render", "--size", "16x12", "-o", str(out), "--processes", "2"])
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.startswith("jaxlens render: error: --processes 2: 2 processes of 400 MiB each "
+                          "need about 0.8 GiB, and this process can take 0.")  # fmt: skip
+    assert err.endswith(" GiB (address-space limit): run fewer processes\n"), err
+    assert list(tmp_path.iterdir()) == []
