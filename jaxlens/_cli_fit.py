@@ -6,38 +6,93 @@ import json
 import math
 import sys
 
-from . import _multi
+from . import _multi, _schema
+from ._schema import MAGNITUDE_MAX
+
+# Numbers of the command line that are not scene keys (a noise sigma, a gain, a mass, a
+# distance in metres) lie in [1e-30, 1e30]: their squares and inverses stay within
+# float64 (1e-300 as a noise sigma made every weight infinite), and no image or black
+# hole needs more (the observable universe is 9e26 m across, its mass 1e23 M_sun).
+SMALLEST, LARGEST = 1e-30, MAGNITUDE_MAX
+# A Gaussian PSF of 1000 pixels or more: the model is rendered with a margin of
+# 4 sigma on each side (8000 pixels more each way), and a ring blurred over thousands
+# of pixels is not there to fit.
+PSF_SIGMA_MAX = 1000.0
 
 
 def _noise(text):
     if text in ("gaussian", "poisson"):
         return text
     try:
-        sigma = float(text)
+        return _number_in("--noise", text, SMALLEST, LARGEST, "a noise sigma in pixel values")
     except ValueError:
-        sigma = math.nan
-    if not (math.isfinite(sigma) and sigma > 0):
         raise argparse.ArgumentTypeError(
-            f"{text!r} is not gaussian, poisson or a noise sigma > 0 (pixel values)"
-        )
-    return sigma
+            f"{_schema.cut(repr(text))} is not gaussian, poisson or a noise sigma from "
+            f"{SMALLEST:g} to {LARGEST:g} (pixel values)"
+        ) from None
 
 
 def _number(name, text):
     try:
         return float(text)
     except ValueError:
-        raise ValueError(f"{name} {text!r} is not a number") from None
+        raise ValueError(f"{name} {_schema.cut(repr(text))} is not a number") from None
 
 
-def _positive(name):
-    def parse(text):
-        value = _number(name, text)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} {text!r} must be a finite number > 0")
-        return value
+def _number_in(name, text, lo, hi, unit, *, open_=False):
+    """The number of an option, checked to be finite and in [lo, hi] (`open_`: in
+    (lo, hi))."""
+    value = _number(name, text)
+    if not (math.isfinite(value) and (lo < value < hi if open_ else lo <= value <= hi)):
+        valid = f"in ({lo:g}, {hi:g})" if open_ else f"from {lo:g} to {hi:g}"
+        raise ValueError(f"{name} {_schema.cut(repr(text))} is not valid: expected a number "
+                         f"{valid} ({unit})")  # fmt: skip
+    return value
 
-    return parse
+
+def _positive(name, unit):
+    """A number option in [SMALLEST, LARGEST]."""
+    return lambda text: _number_in(name, text, SMALLEST, LARGEST, unit)
+
+
+def _held(item: str) -> tuple[str, float]:
+    """`--fix NAME=VALUE`: the parameter's name (without `_deg`) and value (radians for
+    `_deg`), checked against the range the fit keeps the parameter in (distance > 1,
+    FOV in (0, 180) degrees, ...) and at most `MAGNITUDE_MAX` in magnitude."""
+    from ._fit.params import is_angle, parameter
+
+    shown = _schema.cut(repr(item))
+    name, sep, text = item.partition("=")
+    name, text = name.strip(), text.strip()
+    if not sep:
+        raise ValueError(f"--fix {shown} is not NAME=VALUE")
+    value = _number(f"--fix {name}", text)
+    deg = name.endswith("_deg")
+    base = name[:-4] if deg else name
+    try:
+        p = parameter(base)
+        if deg and not is_angle(base):
+            raise ValueError(f"{base} is not an angle: give it without _deg ({p.unit})")
+    except ValueError as e:
+        raise ValueError(f"--fix {shown}: {e}") from None
+    t = p.transform
+    lo = -math.inf if t.kind == "free" else t.lo
+    hi = t.hi if t.kind == "between" else math.inf
+    if base == "psf_sigma":
+        hi = PSF_SIGMA_MAX
+    if deg:
+        lo, hi = math.degrees(lo), math.degrees(hi)
+    inside = lo < value < hi
+    if not (math.isfinite(value) and inside and abs(value) <= MAGNITUDE_MAX):
+        if math.isfinite(lo) and math.isfinite(hi):
+            valid = f"a number in ({lo:.12g}, {hi:.12g})"
+        else:
+            valid = f"a number > {lo:.12g}" if math.isfinite(lo) else "a finite number"
+        unit = "degrees" if deg else p.unit
+        big = f", at most {MAGNITUDE_MAX:g} in magnitude" if inside else ""
+        raise ValueError(f"--fix {name}={_schema.cut(text)} is not valid: expected {valid}"
+                         f"{f' ({unit})' if unit else ''}{big}")  # fmt: skip
+    return base, math.radians(value) if deg else value
 
 
 def register(sub):
@@ -109,22 +164,23 @@ def run(args):
     index, count = _multi.join() if args.distributed else (0, 1)
     sigma = None
     if args.star_sigma_deg is not None:
-        sigma_deg = _positive("--star-sigma-deg")(args.star_sigma_deg)
-        if not sigma_deg < 180.0:
-            raise ValueError(f"--star-sigma-deg {args.star_sigma_deg} must be below 180")
-        sigma = math.radians(sigma_deg)
-    mass = _positive("--mass-msun")(args.mass) if args.mass is not None else None
-    dist_m = _positive("--distance-m")(args.distance_m) if args.distance_m is not None else None
+        key = _schema.keys("sky", "star")["sigma_deg"]
+        value = _number("--star-sigma-deg", args.star_sigma_deg)
+        sigma = math.radians(_schema.coerce("", "--star-sigma-deg", value, key, equals=" "))
+    mass = _positive("--mass-msun", "solar masses")(args.mass) if args.mass is not None else None
+    dist_m = None
+    if args.distance_m is not None:
+        dist_m = _positive("--distance-m", "metres")(args.distance_m)
 
     from ._camera import Camera
     from ._fit import DEFAULT_FREE, fit as fit_scene
-    from ._fit.params import split_name
     from ._scene import Scene
     from ._sky import GaussianStar, Uniform
 
     psf, free = None, list(DEFAULT_FREE)
     if args.psf_sigma_px is not None:
-        psf = _positive("--psf-sigma-px")(args.psf_sigma_px)
+        psf = _number_in("--psf-sigma-px", args.psf_sigma_px, 0.0, PSF_SIGMA_MAX, "pixels",
+                         open_=True)  # fmt: skip
     elif args.fit_psf:
         psf = 1.0
         free.append("psf_sigma")
@@ -137,21 +193,13 @@ def run(args):
         init["sigma"] = sigma
         free.remove("sigma")
     for item in args.fix:
-        name, sep, text = item.partition("=")
-        name = name.strip()
-        value = _finite_number(f"--fix {item}", text) if sep else None
-        if value is None:
-            raise ValueError(f"--fix {item!r} is not NAME=VALUE")
-        if name.endswith("_deg"):
-            name, value = name[:-4], math.radians(value)
-        try:
-            split_name(name)
-        except ValueError as e:
-            raise ValueError(f"--fix {item!r}: {e}") from None
+        name, value = _held(item)
         init[name] = value
         if name in free:
             free.remove(name)
-    gain = _positive("--gain")(args.gain) if args.gain is not None else None
+    gain = None
+    if args.gain is not None:
+        gain = _positive("--gain", "counts a unit of pixel value")(args.gain)
     from . import cli
 
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
@@ -221,13 +269,6 @@ def _report(args, image, fit, mass, dist_m) -> str:
     if args.json:
         return json.dumps(_finite(out))
     return "\n".join(lines) + ("\n" if len(args.images) > 1 else "")
-
-
-def _finite_number(what, text):
-    value = _number(what, text)
-    if not math.isfinite(value):
-        raise ValueError(f"{what} {text!r} must be finite")
-    return value
 
 
 def _finite(d):

@@ -2,6 +2,7 @@
 readable line on stderr naming the option (or scene key) and the value, exit code 2,
 before anything is rendered."""
 
+import math
 import os
 import time
 
@@ -243,3 +244,172 @@ def test_animation_paths_are_checked_before_rendering(tmp_path, capsys, monkeypa
                            capsys)  # fmt: skip
     assert code == 2 and message in one_error_line(err, "animate")
     assert os.listdir(tmp_path) == ["s.toml"]
+
+
+# -------------------------------------------------------------- the sweep
+# Every numeric option of render, animate and fit, and every number of a scene file,
+# with values at and beyond every edge: each is refused with one line naming the option
+# (or key) and the value, before anything is rendered, or is valid and gives finite
+# values. (A valid render is replaced by a stand-in: the sweep checks the inputs.)
+
+EDGES = ["-inf", "inf", "nan", "1e300", "-1e300", "0", "-1", "1e-300", "1.5", str(10**30)]
+
+RENDER = ["--distance", "--fov-deg", "--star-sigma-deg", "--star-brightness", "--floor",
+          "--supersample", "--exposure", "--yaw-deg", "--pitch-deg", "--roll-deg",
+          "--accuracy"]  # fmt: skip
+FIT = ["--psf-sigma-px", "--noise", "--gain", "--star-sigma-deg", "--mass-msun",
+       "--distance-m"]  # fmt: skip
+FIXED = ["distance", "fov_deg", "yaw_deg", "source_lat_deg", "sigma_deg", "brightness",
+         "floor", "psf_sigma"]  # fmt: skip
+
+
+def _sweep():
+    """(command, its arguments, the option the message names, the value typed)."""
+    for v in EDGES:
+        for flag in RENDER:
+            yield "render", [flag, v], flag, v
+        yield "render", ["--size", f"{v}x12"], "--size", v
+        yield "render", ["--size", f"16x{v}"], "--size", v
+        for path in ("approach", "orbit", "pan", "zoom"):
+            for flag in ("--start", "--stop"):
+                yield "animate", ["--path", path, flag, v], flag, v
+        for flag in ("--frames", "--fps"):
+            yield "animate", [flag, v], flag, v
+        for flag in FIT:
+            yield "fit", [flag, v], flag, v
+        for name in FIXED:
+            yield "fit", ["--fix", f"{name}={v}"], f"--fix {name}=", v
+
+
+SWEEP = list(_sweep())
+# Checked by the renderer (before it compiles): a field of view or a star narrower than
+# the float resolution of the pixels' directions depends on the image size and dtype.
+AT_RENDER = {"--fov-deg 1e-300": "field of view", "--star-sigma-deg 1e-300": "sigma",
+             "--path zoom --start 1e-300": "field of view",
+             "--path zoom --stop 1e-300": "field of view"}  # fmt: skip
+
+
+def _shown(text: str) -> set[str]:
+    """The ways a message may show the number typed as `text`."""
+    out = {text}
+    for kind in (float, int):
+        try:
+            out.add(repr(kind(text)))
+        except (ValueError, OverflowError):
+            pass
+    return out
+
+
+@pytest.mark.parametrize("command,extra,flag,value", SWEEP,
+                         ids=[f"{c} {' '.join(e)}" for c, e, _, _ in SWEEP])  # fmt: skip
+def test_every_number_of_the_command_line_at_its_edges(tmp_path, capsys, monkeypatch, command,
+                                                       extra, flag, value):  # fmt: skip
+    import jax
+    import numpy as np
+
+    at_render = AT_RENDER.get(" ".join(extra))
+    rendered, real = [], jl.render
+
+    def render(scene, **kwargs):  # a stand-in: the inputs are what the sweep checks
+        rendered.append(scene)
+        if at_render:
+            return real(scene, **kwargs)  # (its checks come before it compiles)
+        for leaf in jax.tree_util.tree_leaves(scene):
+            if np.issubdtype(getattr(leaf, "dtype", np.int8), np.inexact):
+                assert np.all(np.isfinite(np.asarray(leaf))), (extra, scene)
+        cam = scene.camera
+        return np.zeros((*cam.batch_shape, cam.height, cam.width, 3), np.float32)
+
+    monkeypatch.setattr(jl, "render", render)
+    if command == "fit":  # an image that is not there: valid options end at it
+        args = ["fit", str(tmp_path / "none.png"), *extra]
+    else:
+        out = tmp_path / ("o.exr" if command == "render" else "o.gif")
+        frames = ["--frames", "2"] if command == "animate" and "--frames" not in extra else []
+        args = [command, "--size", "16x12", "--supersample", "1", *frames, *extra, "-o", str(out)]
+    code, stdout, err = run(args, capsys)
+    if code == 0:  # valid: rendered (by the stand-in) from finite values
+        assert command != "fit" and rendered and "wrote" in stdout
+        return
+    line = one_error_line(err, command)
+    assert code == 2
+    if command == "fit" and "none.png' does not exist" in line:
+        return  # the options were valid
+    if at_render:
+        assert at_render in line
+        return
+    assert not rendered  # refused before rendering
+    # (the GIF's own limits on --fps are said by its writer as "fps=...")
+    assert flag.lstrip("-") in line and any(s in line for s in _shown(value)), line
+
+
+EDGE_VALUES = [-math.inf, math.inf, math.nan, 1e300, -1e300, 0, -1, 1e-300, 1.5, 10**30]
+
+
+def _scene_keys():
+    """(the scene dict around a value, the key's name): every number of a scene file."""
+    from jaxlens import _scene
+
+    yield from ((lambda v, n=n: {n: v}, n) for n in _scene.TOP_KEYS)
+    for table in ("camera", "output", "animation"):
+        for name, key in getattr(_scene, f"{table.upper()}_KEYS").items():
+            if key.kind not in ("str", "bool"):
+                yield (lambda v, t=table, n=name: {t: {n: v}}), name
+    for kind in jl.scene_table_types("sky"):
+        keys = jl.scene_table_keys("sky", kind)
+        for name, key in keys.items():
+            if key.kind in ("str", "bool"):
+                continue
+            # What the key needs beside it: an image, a star list's partner.
+            extra = {"path": "p.png"} if "path" in keys else {}
+            if name in ("lon_deg", "lat_deg", "size", "plane_distance"):
+                extra = {{"lon_deg": "lat_deg", "lat_deg": "lon_deg", "size": "plane_distance",
+                          "plane_distance": "size"}[name]: 1.0, **extra}  # fmt: skip
+            yield (lambda v, k=kind, n=name, e=extra: {"sky": [{"type": k, n: v, **e}]}), name
+    for section in ("motion", "redshift", "disk"):
+        for kind in jl.scene_table_types(section):
+            for name, key in jl.scene_table_keys(section, kind).items():
+                if key.kind not in ("str", "bool"):
+                    yield (lambda v, s=section, k=kind, n=name:
+                           {"effects": {s: {"type": k, n: v}}}), f"{kind} {name}"  # fmt: skip
+
+
+# Refused by the sky's own code, in words that do not name the key: random stars'
+# brightness 0 (an OverflowError from numpy's log-uniform draw), a plane whose size and
+# distance make it 180 degrees wide ("width=180.0 degrees must be in (0, 180)").
+KNOWN = {("stars", "brightness", 0), ("stars", "brightness", -1),
+         ("plane", "size", 10**30), ("plane", "plane_distance", 1e-300)}  # fmt: skip
+
+
+def _case(make, name, value):
+    sky = make(value).get("sky", [{}])[0].get("type")
+    if (sky, name, value) in KNOWN:
+        return pytest.param(make, name, value, marks=pytest.mark.xfail(
+            reason="the sky's build refuses it without naming the key"))  # fmt: skip
+    return (make, name, value)
+
+
+SCENE_KEYS = [_case(make, name, v) for make, name in _scene_keys() for v in EDGE_VALUES]
+
+
+@pytest.mark.parametrize("make,name,value", SCENE_KEYS)
+def test_every_number_of_a_scene_file_at_its_edges(tmp_path, monkeypatch, make, name, value):
+    import jax
+    import numpy as np
+
+    if "p.png" in str(make(value)):  # an image sky's image, here
+        monkeypatch.chdir(tmp_path)
+        jl.write_image("p.png", np.full((4, 8, 3), 0.5, np.float32))
+    name = name.rpartition(" ")[2]
+    try:
+        scene = jl.Scene.from_dict(make(value))
+    except ValueError as e:
+        message = str(e)
+        assert name in message and len(message) < 400, message
+        shown = {repr(value), repr(float(value)) if abs(value) < 1e300 else repr(value),
+                 str(value).lower()}  # fmt: skip
+        assert any(s in message for s in shown), message
+        return
+    for leaf in jax.tree_util.tree_leaves(scene):
+        if np.issubdtype(getattr(leaf, "dtype", np.int8), np.inexact):
+            assert np.all(np.isfinite(np.asarray(leaf))), (name, value, scene)
