@@ -30,10 +30,13 @@ def register(sub):
     add_scene_options(p, size_default="480x270", supersample_default=2)
     _multi.add_options(p)
     p.add_argument("--path", choices=ANIMATION_PATHS, help="camera path (default approach)")
-    p.add_argument("--frames", type=int, help="number of frames (default 24)")
-    p.add_argument("--start", type=float, help="first value of the path (see above)")
+    p.add_argument("--frames", type=int, help="number of frames, 1 to 10000 (default 24)")
+    p.add_argument("--start", type=float, help="first value of the path (see above: a "
+                   "distance in (1, 1e30], a FOV in (0, 180), an angle with |angle| <= "
+                   "1e30)")  # fmt: skip
     p.add_argument("--stop", type=float, help="last value of the path")
-    p.add_argument("--fps", type=float, help="frames a second of the GIF or MP4 (default 12)")
+    p.add_argument("--fps", type=float, help="frames a second of the GIF or MP4, in (0, 1000) "
+                   "(default 12)")  # fmt: skip
     p.add_argument("--frames-dir", help="also write each frame as an image file into this "
                    "folder (made if missing; frame_0000.png, ...). The frames an earlier run "
                    "wrote there, as recorded in its hidden .jaxlens-frames.json, are replaced "

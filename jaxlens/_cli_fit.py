@@ -115,7 +115,7 @@ def register(sub):
         "--psf-sigma-px",
         type=str,
         default=None,
-        help="a Gaussian point-spread function of this width (pixels)",
+        help="a Gaussian point-spread function of this width (pixels, in (0, 1000))",
     )
     blur.add_argument("--psf", default=None, help="a point-spread function image (file)")
     blur.add_argument(
@@ -126,13 +126,13 @@ def register(sub):
         type=_noise,
         default="gaussian",
         help="noise model: gaussian (sigma estimated from the image, the default), poisson, "
-        "or the Gaussian sigma itself in pixel values (e.g. 0.01)",
+        "or the Gaussian sigma itself in pixel values (e.g. 0.01; from 1e-30 to 1e30)",
     )
     p.add_argument(
         "--gain",
         type=str,
         default=None,
-        help="Poisson: counts per unit of pixel value (estimated if not given)",
+        help="Poisson: counts per unit of pixel value, from 1e-30 to 1e30 (estimated if not given)",
     )
     p.add_argument("--mask", default=None, help="mask image: pixels > 0.5 are left out")
     p.add_argument(
@@ -147,13 +147,17 @@ def register(sub):
         "--star-sigma-deg",
         type=str,
         default=None,
-        help="the star's Gaussian width in degrees, when known (fitted otherwise)",
+        help="the star's Gaussian width in degrees, in (0, 180), when known (fitted otherwise)",
     )
     scale = p.add_mutually_exclusive_group()
     scale.add_argument("--mass-msun", "--mass", dest="mass", metavar="MSUN", type=str,
-                       help="mass of the hole in solar masses: D in metres")  # fmt: skip
+                       help="mass of the hole in solar masses (1e-30 to 1e30): D in "
+                       "metres")  # fmt: skip
     scale.add_argument(
-        "--distance-m", type=str, default=None, help="camera distance in metres: the mass"
+        "--distance-m",
+        type=str,
+        default=None,
+        help="camera distance in metres (1e-30 to 1e30): the mass",
     )
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
     _multi.add_options(p)

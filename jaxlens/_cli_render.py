@@ -60,28 +60,38 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
                    help="print every table and key a scene file takes, with defaults and "
                    "valid values, and exit")  # fmt: skip
     p.add_argument("-o", "--output", required=True, help="output file")
-    p.add_argument("--distance", type=float, help="camera distance, units of R_S (default 20)")
+    p.add_argument(
+        "--distance", type=float, help="camera distance, units of R_S, in (1, 1e30] (default 20)"
+    )
     # Degrees are named in the option (as in the scene file's keys); R_S and radians,
     # the library's own units, are not. The short old names stay as aliases.
     p.add_argument("--fov-deg", "--fov", dest="fov", metavar="DEG", type=float,
-                   help="horizontal field of view, degrees (default 60)")  # fmt: skip
-    p.add_argument("--size", help=f"WxH in pixels (default {size_default})")
+                   help="horizontal field of view, degrees, in (0, 180) (default 60)")  # fmt: skip
+    p.add_argument("--size", help=f"WxH in pixels, each 1 to 1048575 (default {size_default})")
     p.add_argument("--sky", help=f"{SKY_CHOICES} (default: default, a procedural sky and a star)")
     p.add_argument(
-        "--star-sigma-deg", type=float, help="Gaussian sigma of the star, degrees (default 1)"
+        "--star-sigma-deg",
+        type=float,
+        help="Gaussian sigma of the star, degrees, in (0, 180) (default 1)",
     )
-    p.add_argument("--star-brightness", type=float, help="peak brightness of the star (default 1)")
-    p.add_argument("--floor", type=float, help="uniform sky level added to the sky")
-    p.add_argument("--supersample", type=int, help=f"k x k samples a pixel (default "
-                   f"{supersample_default})")  # fmt: skip
+    p.add_argument(
+        "--star-brightness", type=float, help="peak brightness of the star, |b| <= 1e30 (default 1)"
+    )
+    p.add_argument("--floor", type=float, help="uniform sky level added to the sky, |v| <= 1e30")
+    p.add_argument("--supersample", type=int, help=f"k x k samples a pixel, k from 1 to 64 "
+                   f"(default {supersample_default})")  # fmt: skip
     p.add_argument("--sampling", choices=("uniform", "gauss"), help="uniform: k x k point "
                    "samples a pixel (default); gauss: area-exact Gauss-Legendre cells")  # fmt: skip
-    p.add_argument("--exposure", type=float, help="exposure in stops, PNG/JPEG (default 0)")
+    p.add_argument(
+        "--exposure", type=float, help="exposure in stops, PNG/JPEG, in (-100, 100) (default 0)"
+    )
     for name, what in (("yaw", "view turned right"), ("pitch", "view turned up"),
                        ("roll", "view turned about the line of sight")):  # fmt: skip
         p.add_argument(f"--{name}-deg", f"--{name}", dest=name, metavar="DEG", type=float,
-                       help=f"{what}, degrees")  # fmt: skip
-    p.add_argument("--accuracy", type=float, help="ray-map accuracy, radians (default 1e-8)")
+                       help=f"{what}, degrees, |angle| <= 1e30")  # fmt: skip
+    p.add_argument(
+        "--accuracy", type=float, help="ray-map accuracy, radians, in (0, 0.1) (default 1e-8)"
+    )
     p.add_argument(
         "--float64", action="store_true", help="compute pixels in float64 (default float32)"
     )
