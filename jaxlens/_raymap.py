@@ -115,22 +115,22 @@ class RayMap(eqx.Module):
         Called with a concrete distance outside a transformation (not under `jit`,
         `grad`, `vmap`), it runs one compiled program a setting and keeps the tables of
         the last 16 distances: a later call with one of them returns the same table.
+
+        A distance that `trace` refuses (not finite, $\\le 1$ or beyond
+        `MAX_DISTANCE` = 1e30, complex, float16) is refused here by the same check:
+        a `ValueError`/`TypeError` eagerly, an `eqx.error_if` error at run time under
+        `jit`.
         """
-        dtype = jnp.result_type(float, distance)
-        concrete_d = is_concrete(distance) and not tracing()
-        # A concrete distance stays on the host (`jnp.asarray` would compile a program).
-        d = np.asarray(distance, dtype) if concrete_d else jnp.asarray(distance, dtype)
-        if d.ndim != 0:
-            raise ValueError(f"RayMap.build needs a scalar distance, got shape {d.shape}")
-        settings = _settings(accuracy, knots, max_windings, captured, alpha_max,
-                             exact_slopes, iterations)  # fmt: skip
-        if not concrete_d:  # part of the caller's program
-            return _tabulated(cls, d, **settings)
-        # A concrete distance: one compiled program a setting, reused for every distance
-        # (op by op, each later build took 0.45 s; compiled, 0.03 s), and the table of
-        # each of the last few distances kept for the next build. An eager jacfwd or
-        # grad through the build traces it, so it stays op by op there.
-        return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()))
+        from ._trace import _check_distance, _check_dtype, _check_real
+
+        _check_real("distance", distance)
+        dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
+        distance = _check_distance(distance, dtype)
+        return tabulate(
+            distance, accuracy=accuracy, knots=knots, max_windings=max_windings,
+            captured=captured, alpha_max=alpha_max, exact_slopes=exact_slopes,
+            iterations=iterations, cls=cls,
+        )  # fmt: skip
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated escape angle (radians) at `alpha`; meaningful where
@@ -225,6 +225,38 @@ class RayMap(eqx.Module):
             r0 = _exact.periapsis(jnp.where(turning, b, 2.0 * _exact.B_CRIT))
         r_min = jnp.where(turning, r0, jnp.where(escaped, self.distance, 1.0))
         return TraceResult(phi, status.astype(jnp.int8), r_min.astype(phi.dtype))
+
+
+def tabulate(
+    distance,
+    *,
+    accuracy: float = 1e-10,
+    knots: int | None = None,
+    max_windings: float = 10.0,
+    captured: bool = False,
+    alpha_max: float = math.pi,
+    exact_slopes: bool = False,
+    iterations: int = 8,
+    cls=RayMap,
+) -> RayMap:
+    """`RayMap.build` without its check of the distance: for callers that checked it
+    already (`trace`, the renderer, the fit), so that their compiled programs hold no
+    second error callback (a program with one is not kept by the persistent cache)."""
+    dtype = jnp.result_type(float, distance)
+    concrete_d = is_concrete(distance) and not tracing()
+    # A concrete distance stays on the host (`jnp.asarray` would compile a program).
+    d = np.asarray(distance, dtype) if concrete_d else jnp.asarray(distance, dtype)
+    if d.ndim != 0:
+        raise ValueError(f"RayMap.build needs a scalar distance, got shape {d.shape}")
+    settings = _settings(accuracy, knots, max_windings, captured, alpha_max,
+                         exact_slopes, iterations)  # fmt: skip
+    if not concrete_d:  # part of the caller's program
+        return _tabulated(cls, d, **settings)
+    # A concrete distance: one compiled program a setting, reused for every distance
+    # (op by op, each later build took 0.45 s; compiled, 0.03 s), and the table of
+    # each of the last few distances kept for the next build. An eager jacfwd or
+    # grad through the build traces it, so it stays op by op there.
+    return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()))
 
 
 def _tabulated(cls, d, *, knots, max_windings, captured, alpha_max, exact_slopes, iterations):

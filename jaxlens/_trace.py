@@ -220,7 +220,7 @@ class Table(AbstractMethod):
     accuracy: float = eqx.field(static=True, default=1e-10)
 
     def __call__(self, alpha, distance, max_windings):
-        from ._raymap import RayMap
+        from ._raymap import tabulate
 
         if jnp.ndim(distance) != 0:
             d = jnp.ravel(distance)[0]
@@ -231,7 +231,8 @@ class Table(AbstractMethod):
         # constant distance does not let XLA fold away the fusion boundary that keeps
         # the knots from being recomputed per ray (see RayMap.build).
         distance = distance + 0.0 * jnp.ravel(alpha)[0]
-        ray_map = RayMap.build(
+        # `trace` checked the distance (no second error callback in its program).
+        ray_map = tabulate(
             distance, accuracy=self.accuracy, max_windings=max_windings, captured=True,
             **TABLE_SETTINGS,
         )  # fmt: skip
@@ -286,7 +287,7 @@ def _table_rays(method: "Table", alpha, distance, max_windings):
     program (kept for the next call at that distance, see `RayMap.build`), then the
     rays looked up in it. On a first call the look-up's program compiles on a thread
     while the table's compiles and runs."""
-    from ._raymap import RayMap, placeholder
+    from ._raymap import placeholder, tabulate
 
     settings = dict(accuracy=method.accuracy, max_windings=float(max_windings),
                     captured=True, **TABLE_SETTINGS)  # fmt: skip
@@ -302,7 +303,7 @@ def _table_rays(method: "Table", alpha, distance, max_windings):
         except Exception:  # noqa: BLE001 - the call itself reports it
             pass
     with ahead:
-        ray_map = RayMap.build(distance, **settings)
+        ray_map = tabulate(distance, **settings)  # checked by `trace`
     return _through_map(ray_map, alpha)
 
 

@@ -162,3 +162,30 @@ def test_trace_refuses_wrong_types_by_name():
     for name, value in (("accuracy", math.nan), ("max_windings", math.inf)):
         with pytest.raises(ValueError, match=f"{name}=(nan|inf) must be finite and > 0"):
             jl.trace(0.5, 10.0, **{name: value})
+
+
+_build_jit = jax.jit(lambda d: jl.RayMap.build(d, knots=64).alpha_sh)
+
+
+@pytest.mark.parametrize("distance", [1.0, 0.5, -2.0, math.nan, math.inf, 1e31])
+def test_ray_map_refuses_the_distances_trace_refuses(distance):
+    # Every ray was "captured" with alpha_sh NaN, without an error.
+    with pytest.raises(ValueError, match=r"distance=.* (is not a valid camera radius|is beyond "
+                       "the largest supported)"):  # fmt: skip
+        jl.RayMap.build(distance, knots=64)
+    with pytest.raises(Exception, match="distance must be finite and > 1"):
+        jax.block_until_ready(_build_jit(jnp.asarray(distance)))
+
+
+def test_ray_map_builds_at_the_ends_of_the_range():
+    assert math.isclose(float(_build_jit(jnp.asarray(3.0))), math.pi / 4, rel_tol=1e-14)
+    with pytest.raises(TypeError, match=r"distance=\(3\+1j\) must be real numbers"):
+        jl.RayMap.build(3.0 + 1j)
+    # float32 at the largest distance (its closed form overflowed beyond 1e19): alpha_sh
+    # = b_c / D, the knots' escape angles finite and falling with alpha (to the float32
+    # rounding of values up to 19 rad, 16 ulps: 3e-5); the look-up is checked through
+    # trace(method="table").
+    m = jl.RayMap.build(np.float32(1e30), accuracy=1e-5)
+    np.testing.assert_allclose(float(m.alpha_sh), jl.B_CRIT / 1e30, rtol=1e-6)
+    phi = np.asarray(m.phi)
+    assert np.all(np.isfinite(phi)) and np.all(np.diff(phi) <= 3e-5)
