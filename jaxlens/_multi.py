@@ -376,16 +376,17 @@ def finished() -> None:
 
 def _wait(procs) -> tuple[int, int] | None:
     """Wait until every process has ended well (`None`) or one has failed:
-    `(index, exit status)`, negative for a signal. Of processes that end together, one
-    killed by a signal is named first: the others' exit statuses may be their end
-    because of it (JAX ends a job's processes once one of them is gone)."""
+    `(index, exit status)`, negative for a signal. Of processes that end together,
+    process 0's own error comes first (it says it on the terminal), then one killed by
+    a signal: the others' exit statuses may be their end because of it (JAX ends a
+    job's processes once one of them is gone)."""
     while True:
         codes = [p.poll() for p in procs]
         if any(c not in (None, 0) for c in codes):
             time.sleep(0.1)  # those that end with it
             codes = [p.poll() for p in procs]
             failed = [(i, c) for i, c in enumerate(codes) if c not in (None, 0)]
-            return min(failed, key=lambda f: f[1] >= 0)  # the first killed, else the first
+            return min(failed, key=lambda f: (not (f[0] == 0 and f[1] > 0), f[1] >= 0))
         if all(c == 0 for c in codes):
             return None
         time.sleep(0.02)
@@ -469,10 +470,13 @@ class Stage:
         self.out, self.what, self._lock = Path(out), what, None
         if jax.process_index() == 0:
             name = f".{self.out.name}.{what}-{key(settings)}"
-            self._lock = _hold(self.out.parent / name, wait=2.0)
-            error = "" if self._lock is not None else _busy(self.out, self.out.parent / name)
-            if self._lock is not None:
-                self._note()
+            try:  # (an error is the others' too: they wait for the folder's name)
+                self._lock = _hold(self.out.parent / name, wait=2.0)
+                error = "" if self._lock is not None else _busy(self.out, self.out.parent / name)
+                if self._lock is not None:
+                    self._note()
+            except OSError as e:
+                error = f"the folder of finished {what} beside the output: {e}"
             if jax.process_count() > 1:
                 post("stage", json.dumps([name, error]))
         else:  # the folder process 0 holds (or its refusal)
