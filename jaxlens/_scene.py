@@ -1,7 +1,7 @@
 """The scene: a camera, a sky and the effects it calls for; and its TOML file format.
 
-A scene file is TOML (read with `tomllib`, no code is executed), validated key by key;
-every key is optional:
+A scene file is TOML (read with `tomllib`, no code is executed; at most 1 MiB,
+`SCENE_FILE_MAX`), validated key by key; every key is optional:
 
 ```toml
 accuracy = 1e-8            # ray-map interpolation error, radians
@@ -351,6 +351,8 @@ class Scene(eqx.Module):
 
 
 def load_scene(path, *, dtype=None) -> Scene:
-    """Read and validate a TOML scene file (camera, sky layers, effects); image paths
-    in it are relative to the file's folder."""
+    """Read and validate a TOML scene file (camera, sky layers, effects) of at most
+    `SCENE_FILE_MAX` bytes (1 MiB); image paths in it are relative to the file's folder.
+    Raises `ValueError` naming the file, or the table, key and value that is not valid
+    and the valid range (`jaxlens render --scene-keys` lists them)."""
     return Scene.from_dict(read_scene_file(path), source=str(path), dtype=dtype)

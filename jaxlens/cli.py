@@ -2,7 +2,9 @@
 
 Errors in the input (bad values, unreadable files, unwritable outputs) end the
 command with one line on stderr and exit code 2; no traceback, and no partial output
-file (every file is written atomically).
+file (every file is written atomically). The line names the option (or scene key), the
+value and what is valid; a long value is cut to its start and its length, and the line
+to at most `LINE_MAX` (1000) characters.
 """
 
 import argparse
