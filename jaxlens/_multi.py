@@ -77,14 +77,18 @@ def join() -> tuple[int, int]:
 
     _quiet_native_stdout()
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    # A process `--processes` started ends with its launcher (the kernel's signal at
-    # its parent's death): killed while JAX holds SIGTERM (below), then terminated.
-    _end_with_launcher(signal.SIGKILL)
-    address = os.environ.get(COORDINATOR)
     # JAX's runtime takes SIGTERM for its preemption notices (the process then goes on
     # as if nothing happened); the command's own handler, which unwinds and removes
     # temporary files, is put back.
     on_term = signal.getsignal(signal.SIGTERM)
+    if callable(on_term):
+        on_term = _quiet_when_orphaned(on_term)
+        signal.signal(signal.SIGTERM, on_term)
+    # A process `--processes` started ends with its launcher (the kernel's signal at
+    # its parent's death): killed while JAX holds SIGTERM (below), then terminated.
+    _end_with_launcher(signal.SIGKILL)
+    stop_if_orphaned()  # a launcher that ended while this process loaded JAX
+    address = os.environ.get(COORDINATOR)
     try:
         if address:
             jax.distributed.initialize(address, num_processes=int(os.environ[PROCESSES]),
@@ -97,9 +101,7 @@ def join() -> tuple[int, int]:
         msg = (f"--distributed: no multi-process job to join ({e}); start one with a "
                "cluster's launcher (srun ...) or use --processes N")  # fmt: skip
         raise ValueError(msg) from None
-    if callable(on_term):
-        signal.signal(signal.SIGTERM, _quiet_when_orphaned(on_term))
-    elif on_term is not None:
+    if on_term is not None:
         signal.signal(signal.SIGTERM, on_term)
     _end_with_launcher(signal.SIGTERM)
     stop_if_orphaned()  # a launcher that ended before the kernel was told
