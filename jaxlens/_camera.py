@@ -62,22 +62,33 @@ def rotate(m: Float[Array, "3 3"], n: Float[Array, "... 3"]) -> Float[Array, "..
 
 SAMPLINGS = ("uniform", "gauss")
 
+# The largest image side (pixels) and area-sampling factor a camera takes: those of the
+# CLI and scene files. 2^20 - 1 pixels a side keeps pixel indices and image-plane
+# coordinates exact in float32 (24-bit significand, with a sub-sample's 1/k).
+MAX_SIDE = (1 << 20) - 1
+MAX_SUPERSAMPLE = 64
+
 
 class Camera(eqx.Module):
     """Pinhole camera of a static observer at radius `distance` (PHYSICS.md, "Pixels").
 
     **Fields:**
-    - `distance`: camera radius $D > 1$ (units of R_S).
+    - `distance`: camera radius $1 < D \\le 10^{30}$ (units of R_S; the bound is
+      `trace`'s, `MAX_DISTANCE`), also > 1 once rounded to the camera's dtype.
     - `fov`: horizontal field of view (radians, $0 < $ fov $< \\pi$).
-    - `width`, `height`: image size in pixels (static).
-    - `yaw`, `pitch`, `roll`: orientation of the view (radians); yaw turns the view to
-      the right (+x), pitch up (+y), roll turns the image about the line of sight
-      (counter-clockwise). All zero: the hole sits at the image centre.
+    - `width`, `height`: image size in pixels (static), whole numbers from 1 to
+      `MAX_SIDE` = 1,048,575.
+    - `yaw`, `pitch`, `roll`: orientation of the view (radians, finite); yaw turns the
+      view to the right (+x), pitch up (+y), roll turns the view about the line of
+      sight from +x toward +y, so the scene turns clockwise on the image (a star at
+      the right of the image moves to the bottom at roll = +90 degrees). All zero:
+      the hole sits at the image centre.
     - `azimuth`, `elevation`: the camera's position on its sphere of radius $D$
       (radians): the camera sits opposite the sky direction at longitude `azimuth`,
       latitude `elevation`, and (with zero yaw/pitch) looks at the hole and that sky
       direction behind it. Sweeping `azimuth` orbits the camera around the hole.
-    - `supersample`: area sampling with $k \\times k$ samples a pixel (static).
+    - `supersample`: area sampling with $k \\times k$ samples a pixel (static), $k$
+      from 1 to `MAX_SUPERSAMPLE` = 64.
     - `sampling` (static): `"uniform"` ($k \\times k$ point samples a pixel on a regular
       grid, the shadow edge as a linear ramp over one sample) or `"gauss"` (area-exact:
       the $k \\times k$ nodes of a Gauss-Legendre rule, the exact fraction of each cell
@@ -119,28 +130,38 @@ class Camera(eqx.Module):
         sampling: str = "uniform",
         dtype=None,
     ):
-        """**Arguments:** as the fields; `dtype`: float dtype of the array fields
-        (default: that of `distance` and `fov`, float64 for Python floats when
-        `jax_enable_x64` is on)."""
-        if dtype is None:
-            dtype = jnp.result_type(float, distance, fov)
-        given = _concrete(distance)
-        if given is not None and given.dtype.kind == "f" and np.all(given > 1.0):
-            # A valid radius that the dtype cannot tell from the horizon (1 + 1e-9 in
-            # float32): say so rather than report distance=1.0.
-            rounded = np.asarray(given, dtype=np.dtype(dtype))
-            if not np.all(rounded > 1.0):
-                bad = float(np.asarray(given)[~(rounded > 1.0)].flat[0])
-                raise ValueError(
-                    f"distance={bad!r} rounds to 1 (the horizon) in {np.dtype(dtype).name}: "
-                    "use float64 (units of R_S)"
-                )
+        """**Arguments:** as the fields; `dtype`: float dtype of the array fields,
+        float32 or float64 (default: that of `distance` and `fov`, float64 for Python
+        floats when `jax_enable_x64` is on).
+
+        A complex, boolean or text value of an array field, or another `dtype`, is a
+        `TypeError`; a value out of range a `ValueError` naming it."""
+        from ._trace import _check_distance, _check_dtype, _check_real
+
+        angles = {"fov": fov, "yaw": yaw, "pitch": pitch, "roll": roll,
+                  "azimuth": azimuth, "elevation": elevation}  # fmt: skip
+        for name, value in {"distance": distance, **angles}.items():
+            _check_real(name, value)
+        dtype = _check_dtype(jnp.result_type(float, distance, fov) if dtype is None else dtype)
+        for name, value in angles.items():  # before the cast, which would give inf
+            a = _concrete(value)
+            with np.errstate(over="ignore"):
+                finite = a is None or np.all(np.isfinite(np.asarray(a, dtype)))
+            if not finite:
+                raise ValueError(f"{name}={_cut(a)} must be finite in {dtype.name} (radians)")
+        if _concrete(distance) is not None:
+            # Before the cast: 1e300 in float32 is inf, 1 + 1e-9 is the horizon.
+            _check_distance(_concrete(distance), dtype)
         self.distance = _float(distance, dtype)
         self.fov = _float(fov, dtype)
-        for name in ("width", "height", "supersample"):
+        for name, top in (("width", MAX_SIDE), ("height", MAX_SIDE),
+                          ("supersample", MAX_SUPERSAMPLE)):  # fmt: skip
             v = locals()[name]
-            if isinstance(v, bool) or not float(v).is_integer():
-                raise ValueError(f"{name}={v!r} must be a positive whole number")
+            whole = isinstance(v, int | np.integer) and not isinstance(v, bool)
+            if isinstance(v, float | np.floating):
+                whole = math.isfinite(v) and float(v).is_integer()
+            if not (whole and 1 <= v <= top):
+                raise ValueError(f"{name}={_cut(v)} must be a whole number from 1 to {top:,}")
         self.width = int(width)
         self.height = int(height)
         self.yaw = _float(yaw, dtype)
@@ -156,17 +177,16 @@ class Camera(eqx.Module):
             raise ValueError(
                 f"sampling={self.sampling!r} must be one of {', '.join(map(repr, SAMPLINGS))}"
             )
-        for name in ("width", "height", "supersample"):
+        for name, top in (("width", MAX_SIDE), ("height", MAX_SIDE),
+                          ("supersample", MAX_SUPERSAMPLE)):  # fmt: skip
             v = getattr(self, name)
-            if v < 1:
-                raise ValueError(f"{name}={v} must be a positive whole number (pixels)")
+            if not 1 <= v <= top:
+                raise ValueError(f"{name}={v} must be a whole number from 1 to {top:,}")
         d = _concrete(self.distance)
-        if d is not None and (not np.all(np.isfinite(d)) or not np.all(d > 1.0)):
-            bad = d[~(np.isfinite(d) & (d > 1.0))] if d.ndim else d
-            raise ValueError(
-                f"distance={float(bad.flat[0])!r} is not a valid camera radius: it must be finite "
-                "and > 1 (units of R_S, the horizon is at 1)"
-            )
+        if d is not None:  # (after `eqx.tree_at`, `approach`: values set without __init__)
+            from ._trace import _check_distance
+
+            _check_distance(d)
         f = _concrete(self.fov)
         if f is not None and (not np.all(np.isfinite(f)) or not np.all((f > 0) & (f < math.pi))):
             bad = f[~(np.isfinite(f) & (f > 0) & (f < math.pi))] if f.ndim else f
@@ -177,7 +197,7 @@ class Camera(eqx.Module):
         for name in ("yaw", "pitch", "roll", "azimuth", "elevation"):
             a = _concrete(getattr(self, name))
             if a is not None and not np.all(np.isfinite(a)):
-                raise ValueError(f"{name}={a.tolist()!r} must be finite (radians)")
+                raise ValueError(f"{name}={_cut(a)} must be finite (radians)")
 
     # ------------------------------------------------------------------ geometry
 
@@ -277,6 +297,13 @@ class Camera(eqx.Module):
     def to_world(self, n: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
         """Camera-frame directions to world (sky) directions."""
         return rotate(self.position_rotation(), n)
+
+
+def _cut(value, limit: int = 80) -> str:
+    """`value` as a message shows it, cut to `limit` characters."""
+    from ._trace import _show
+
+    return _show(value.tolist() if isinstance(value, np.ndarray) else value, limit)
 
 
 def view_angles(dx, dy, dz):

@@ -413,8 +413,8 @@ def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
     if dt is None or dt.name not in FLOAT_DTYPES:
         shown = dt.name if dt is not None else _show(dtype)
         raise TypeError(
-            f"{what}: {shown} is not supported, use float32 or float64 (lower precisions "
-            "overflow in the geometry; float64 needs jax_enable_x64)"
+            f"{what}: {shown} is not supported, use float32 or float64 (the geometry "
+            "overflows in lower precisions; float64 needs jax_enable_x64)"
         )
     return dt
 

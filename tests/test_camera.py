@@ -92,7 +92,8 @@ def test_roll_turns_beta():
     alpha_a, cb_a, sb_a = a.rays()
     alpha_b, cb_b, sb_b = b.rays()
     np.testing.assert_allclose(alpha_b, alpha_a, atol=EXACT)
-    # Counter-clockwise roll of the image turns every ray's plane by +roll.
+    # Roll turns every pixel's ray plane by +roll: the view turns from +x toward +y
+    # (counter-clockwise), the scene on the image clockwise.
     turned = np.angle(np.exp(1j * (np.arctan2(sb_a, cb_a) + roll)))
     np.testing.assert_allclose(np.arctan2(sb_b, cb_b), turned, atol=1e-12)
 
@@ -166,7 +167,8 @@ def test_bad_camera_raises_naming_the_argument(kwargs, match):
 
 
 def test_distance_too_close_for_the_dtype():
-    with pytest.raises(ValueError, match="distance=1.000000001 rounds to 1 .* float32"):
+    message = r"distance=1.000000001 rounds to 1\.0 \(the horizon\) in float32"
+    with pytest.raises(ValueError, match=message):
         jl.Camera(1 + 1e-9, 1.0, 4, 4, dtype=np.float32)
     assert float(jl.Camera(1 + 1e-9, 1.0, 4, 4).distance) == 1 + 1e-9  # float64 holds it
 
@@ -177,3 +179,18 @@ def test_bad_batch_raises():
         jl.approach(cam, [10.0, 0.5])
     with pytest.raises(ValueError, match="share width"):
         jl.stack_cameras([cam, jl.Camera(20.0, 1.0, 8, 7)])
+
+
+def test_roll_turns_the_scene_clockwise_on_the_image():
+    # A star to the right of the hole (longitude +25 degrees, toward +x): at roll = +90
+    # degrees its image moves from the right of the centre to below it (row 0 is the
+    # top), as the docstring says (it said counter-clockwise).
+    sky = jl.GaussianStar(math.radians(3.0), 1.0, lon=math.radians(25.0), lat=0.0)
+    spots = []
+    for roll in (2 * math.pi, math.pi / 2):  # a full turn: no roll, the same program
+        img = np.asarray(jl.render(jl.Camera(50.0, math.radians(90.0), 16, 12, roll=roll), sky))
+        row, col = np.unravel_index(np.argmax(img.sum(-1)), img.shape[:2])
+        spots.append((col + 0.5 - 8.0, 6.0 - (row + 0.5)))  # x right, y up, pixels
+    (x0, y0), (x1, y1) = spots
+    assert x0 > 2.5 and abs(y0) < 1.0  # right of the centre
+    assert y1 < -2.5 and abs(x1) < 1.0  # below it: turned clockwise

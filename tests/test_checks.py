@@ -189,3 +189,40 @@ def test_ray_map_builds_at_the_ends_of_the_range():
     np.testing.assert_allclose(float(m.alpha_sh), jl.B_CRIT / 1e30, rtol=1e-6)
     phi = np.asarray(m.phi)
     assert np.all(np.isfinite(phi)) and np.all(np.diff(phi) <= 3e-5)
+
+
+@pytest.mark.parametrize(
+    "args,kwargs,error,match",
+    [
+        ((1e300, 1.0, 16, 12), {}, ValueError, r"distance=1e\+300 is beyond the largest"),
+        # the cast to float32 gave distance=inf
+        ((1e300, 1.0, 16, 12), {"dtype": np.float32}, ValueError,
+         r"distance=1e\+300 is beyond the largest"),
+        (("x", 1.0, 16, 12), {}, TypeError, r"distance='x' must be real numbers"),
+        ((20.0 + 1j, 1.0, 16, 12), {}, TypeError, r"distance=\(20\+1j\) must be real numbers"),
+        ((20.0, 1.0, 16, 12), {"dtype": np.int32}, TypeError,
+         "dtype: int32 is not supported, use float32 or float64"),
+        ((20.0, 1.0, 16, 12), {"dtype": np.float16}, TypeError,
+         "dtype: float16 is not supported, use float32 or float64"),
+        ((np.float16(20.0), np.float16(1.0), 16, 12), {}, TypeError,
+         "dtype: float16 is not supported"),
+        ((20.0, 1.0, 10**30, 12), {}, ValueError,
+         "width=1000000000000000000000000000000 must be a whole number from 1 to 1,048,575"),
+        ((20.0, 1.0, 16, 1 << 20), {}, ValueError,
+         "height=1048576 must be a whole number from 1 to 1,048,575"),
+        ((20.0, 1.0, 16, 12), {"supersample": 65}, ValueError,
+         "supersample=65 must be a whole number from 1 to 64"),
+        ((20.0, 1.0, 16, 12), {"roll": 1e300, "dtype": np.float32}, ValueError,
+         r"roll=1e\+300 must be finite in float32"),
+        ((20.0, 1.0, 16, 12), {"yaw": True}, TypeError, "yaw=True must be real numbers"),
+    ],
+)  # fmt: skip
+def test_camera_refuses_bad_values_by_name(args, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        jl.Camera(*args, **kwargs)
+
+
+def test_camera_takes_the_largest_values():
+    cam = jl.Camera(1e30, 1.0, (1 << 20) - 1, 1, supersample=64, dtype=np.float32)
+    assert float(cam.distance) == pytest.approx(1e30, rel=1e-7) and cam.width == 1048575
+    assert jl.Camera(np.float32(1e30), np.float32(1.0), 16, 12).dtype == np.float32
