@@ -31,6 +31,7 @@ $r = (49/36)\\,r_{in}$; each annulus radiates as a blackbody.
 """
 
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -38,10 +39,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from . import _effects
+from . import _effects, _limits
 from ._integrators import rk4_step
+from ._limits import real
 from ._schema import Key, anything, greater, in_range, register
-from ._util import as_float as _farray
 
 _PEAK_X = (7.0 / 6.0) ** 2  # r / r_in at the profile's maximum
 _PEAK_F = _PEAK_X**-0.75 * (1.0 - 1.0 / math.sqrt(_PEAK_X)) ** 0.25
@@ -53,12 +54,14 @@ class Disk(eqx.Module):
     **Fields:**
     - `r_in`, `r_out`: inner and outer radius (units of R_S; $1.5 < r_{in} < r_{out}$,
       default the ISCO, 3).
-    - `inclination`: angle between the disk's normal and the line of sight (radians;
-      0 face-on, $\\pi/2$ edge-on).
-    - `position_angle`: turn of the disk about the line of sight (radians).
-    - `temperature`: peak temperature of the profile (K).
+    - `inclination`: angle between the disk's normal and the line of sight (radians,
+      finite; 0 face-on, $\\pi/2$ edge-on).
+    - `position_angle`: turn of the disk about the line of sight (radians, finite).
+    - `temperature`: peak temperature of the profile (K, finite and >= 1: the local
+      temperature is held at 1 K or above, so a colder peak would brighten the disk's
+      every annulus by the ratio of their luminances, beyond any float).
     - `brightness`: luminance of an emitter at the peak temperature, at rest (the
-      sky's radiance units).
+      sky's radiance units; in [0, 1e30]: a negative one would be negative radiance).
     - `crossings` (static): how many crossings of the disk plane are followed
       (1: direct image only, 2: with the secondary image, ...).
     - `steps` (static): RK4 steps per half turn of the orbit ($\\pi$ in azimuth).
@@ -72,14 +75,24 @@ class Disk(eqx.Module):
     brightness: Float[Array, ""]
     crossings: int = eqx.field(static=True)
     steps: int = eqx.field(static=True)
+    limits: ClassVar = {
+        # r_in and r_out: 1.5 < r_in < r_out < inf, checked together (here and in
+        # `_kernel._checks`).
+        "inclination": _limits.finite("radians"),
+        "position_angle": _limits.finite("radians"),
+        "temperature": _limits.Limit("finite and >= 1", "K", low=1.0),
+        "brightness": _limits.scale("linear radiance"),
+    }
 
     def __init__(self, r_in: ArrayLike = 3.0, r_out: ArrayLike = 12.0,
                  inclination: ArrayLike = math.radians(80.0), *,
                  position_angle: ArrayLike = 0.0, temperature: ArrayLike = 8000.0,
                  brightness: ArrayLike = 1.0, crossings: int = 3, steps: int = 48):  # fmt: skip
-        self.r_in, self.r_out = _farray(r_in), _farray(r_out)
-        self.inclination, self.position_angle = _farray(inclination), _farray(position_angle)
-        self.temperature, self.brightness = _farray(temperature), _farray(brightness)
+        self.r_in, self.r_out = real("r_in", r_in), real("r_out", r_out)
+        self.inclination = real("inclination", inclination)
+        self.position_angle = real("position_angle", position_angle)
+        self.temperature = real("temperature", temperature)
+        self.brightness = real("brightness", brightness)
         self.crossings, self.steps = int(crossings), int(steps)
 
     def __check_init__(self):
@@ -87,16 +100,14 @@ class Disk(eqx.Module):
             raise ValueError(f"crossings={self.crossings} must be >= 1, steps={self.steps} >= 2")
         try:
             r_in, r_out = float(self.r_in), float(self.r_out)
-            t = float(self.temperature)
         except (TypeError, jax.errors.ConcretizationTypeError):
-            return
-        if not (1.5 < r_in < r_out and math.isfinite(r_out)):
+            r_in = r_out = None
+        if r_in is not None and not (1.5 < r_in < r_out and math.isfinite(r_out)):
             raise ValueError(
                 f"r_in={r_in!r}, r_out={r_out!r}: need 1.5 < r_in < r_out < inf (units of R_S;"
                 " circular orbits end at the photon sphere, 1.5)"
             )
-        if not (t > 0 and math.isfinite(t)):
-            raise ValueError(f"temperature={t!r} must be finite and > 0 (K)")
+        _limits.check_fields(self)
 
     def normal(self, dtype=None) -> Float[Array, "3"]:
         """Unit normal of the disk plane, camera frame (the disk turns counter-clockwise

@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from . import _limits
+
 # The colour functions, re-exported for the modules that use them beside the effects.
 from ._color import (
     C2 as C2,
@@ -46,6 +48,7 @@ from ._color import (
     planck as planck,
     shifted_blackbody as shifted_blackbody,
 )
+from ._limits import real
 from ._schema import Key, anything, register
 from ._sky import BlackbodyStars as BlackbodyStars
 
@@ -128,6 +131,10 @@ class AbstractMotion(eqx.Module):
     """
 
     radial: eqx.AbstractClassVar[bool]
+    limits: ClassVar[dict[str, _limits.Limit]] = {}
+
+    def __check_init__(self):
+        _limits.check_fields(self)
 
     @abc.abstractmethod
     def speed(self, distance):
@@ -148,14 +155,15 @@ class CircularOrbit(AbstractMotion):
     Speed $v = 1/\\sqrt{2(D - 1)}$ in the static frame (`orbital_speed`), tangential.
     **Fields:** `angle`: direction of motion across the line of sight, radians from
     the camera frame's $+x$ toward $+y$ (0: moving to the right of an unrotated
-    view; an increasing `Camera.azimuth` is the motion at `angle` $= \\pi$).
+    view; an increasing `Camera.azimuth` is the motion at `angle` $= \\pi$); finite.
     """
 
     radial: ClassVar[bool] = False
     angle: Float[Array, ""]
+    limits: ClassVar = {"angle": _limits.finite("radians")}
 
     def __init__(self, angle: ArrayLike = 0.0):
-        self.angle = jnp.asarray(angle, jnp.result_type(float, angle))
+        self.angle = real("angle", angle)
 
     def speed(self, distance):
         return orbital_speed(distance)

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _area, _disk, _effects
+from . import _area, _disk, _effects, _limits
 from ._camera import view_angles
 from ._exact import shadow_angle
 from ._fastmath import sin_cos
@@ -49,10 +49,38 @@ from ._trace import trace
 from ._util import fusion_barrier
 from ._weak import weak_field_escape_angle
 
+# The camera's orientation and position angles, as the kernel uses them.
+_CAMERA_ANGLES = ("yaw", "pitch", "roll", "azimuth", "elevation")
 
-def _checks(scene, xp):
+
+# The dtypes pixels are computed in: float16's 3 significant digits cannot resolve
+# the sky directions of even a small image, and its range (6.5e4) ends below many
+# radiances (an all-NaN image).
+PIXEL_DTYPES = ("float32", "float64")
+
+
+def pixel_dtype(dtype):
+    """`dtype` as a NumPy dtype, checked: one of `PIXEL_DTYPES` (a `ValueError`
+    naming it otherwise, a `TypeError` for what is not a dtype)."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise TypeError(f"dtype={_limits.cut(repr(dtype))} is not a dtype: pixels are "
+                        "computed in float32 or float64") from None  # fmt: skip
+    if dt.name not in PIXEL_DTYPES:
+        raise ValueError(f"dtype={dt.name} is not supported: pixels are computed in float32 "
+                         "or float64")  # fmt: skip
+    return dt
+
+
+def _checks(scene, xp, dtype=None):
     """Each check of a scene's values: `(where, bad, message)`, `where` the value's
-    path in the scene and `bad` where it fails (`xp`: `jnp` traced, `np` on the host)."""
+    path in the scene and `bad` where it fails (`xp`: `jnp` traced, `np` on the host;
+    `dtype`: the pixel dtype, default the camera's; another is a `ValueError`).
+
+    The camera's distance, field of view and angles are checked here; the sky, the
+    motion and the disk declare their fields' ranges (`limits`, see `_limits`), checked
+    in the pixel dtype: a value it rounds to inf (or a width to 0) is refused too."""
     cam = scene.camera
     d, fov = xp.asarray(cam.distance), xp.asarray(cam.fov)
     out = [
@@ -65,7 +93,7 @@ def _checks(scene, xp):
     # closer than 4 ulps are no longer told apart: a float32 checkerboard at 480
     # samples across differed from float64 on 20 % of its edge pixels at 0.03 degrees
     # (8 ulps apart), 4.5 % at 0.1 degrees, 0.3 % at 2 degrees.
-    dt = jnp.dtype(cam.dtype)
+    dt = pixel_dtype(cam.dtype if dtype is None else dtype)
     across = cam.width * cam.supersample
     fov_min = 4.0 * float(jnp.finfo(dt).eps) * across
     f64 = 4.0 * float(np.finfo(np.float64).eps) * across
@@ -74,11 +102,21 @@ def _checks(scene, xp):
                 f"field of view must be at least {math.degrees(fov_min):.3g} degrees for "
                 f"{across} samples across in {dt.name}: narrower fields are below the "
                 f"resolution of its sky directions{hint}"))  # fmt: skip
+    angle = _limits.finite("radians")
+    for name in _CAMERA_ANGLES:
+        out.append((_limits._getter(lambda s: s.camera, name),
+                    angle.bad(getattr(cam, name), xp, dt),
+                    f"camera {name} must be {angle.describe()}"))  # fmt: skip
+    out += _limits.checks(scene.sky, lambda s: s.sky, "sky", xp, dt)
+    for part in ("motion", "disk"):
+        if getattr(scene, part) is not None:
+            where = _limits._getter(lambda s: s, part)
+            out += _limits.checks(getattr(scene, part), where, part, xp, dt)
     if scene.motion is not None and not scene.motion.radial:
         out.append((lambda s: s.camera.distance, ~(d > 1.5),
                     "a circular orbit needs distance > 1.5 (units of R_S)"))  # fmt: skip
     if scene.disk is not None:
-        r_in, r_out = xp.asarray(scene.disk.r_in), xp.asarray(scene.disk.r_out)
+        r_in, r_out = (xp.asarray(r).astype(dt) for r in (scene.disk.r_in, scene.disk.r_out))
         out.append((lambda s: s.disk.r_in, ~(r_in > 1.5) | ~(r_in < r_out) | ~xp.isfinite(r_out),
                     "disk radii must satisfy 1.5 < r_in < r_out < inf (units of R_S)"))  # fmt: skip
     return out
@@ -86,22 +124,25 @@ def _checks(scene, xp):
 
 def checked(scene):
     """`scene` with its values checked where they are used: `eqx.error_if` on the
-    camera distance ($D > 1$, finite), the field of view ($0 <$ FOV $< \\pi$), a
-    circular orbit's distance ($D > 1.5$) and the disk radii ($1.5 < r_{in} < r_{out}$,
-    finite); a bad traced value raises at run time under `jit`, never a NaN image."""
+    camera distance ($D > 1$, finite), the field of view ($0 <$ FOV $< \\pi$), the
+    camera's angles (finite), a circular orbit's distance ($D > 1.5$), the disk radii
+    ($1.5 < r_{in} < r_{out}$, finite) and every field of the sky, motion and disk
+    against its declared range (`limits`); a bad traced value raises at run time
+    under `jit`, never a NaN image."""
     for where, bad, message in _checks(scene, jnp):
         scene = eqx.tree_at(where, scene, eqx.error_if(where(scene), bad, message))
     return scene
 
 
-def verify(scene):
+def verify(scene, dtype=None):
     """The checks of `checked` on the host, for concrete values: `ValueError` with the
-    same message. A host driver (`render`) checks this way, so that its compiled blocks
+    same message and the bad value (`dtype`: the pixel dtype, default the camera's). A
+    host driver (`render`) checks this way, so that its compiled blocks
     carry no error callback, which would keep them out of JAX's persistent
     compilation cache."""
-    for _, bad, message in _checks(scene, np):
+    for where, bad, message in _checks(scene, np, dtype):
         if np.any(bad):
-            raise ValueError(message)
+            raise ValueError(f"{message}; got {_limits.shown(where(scene), bad)}")
 
 
 def coverage(alpha, alpha_sh, width):

@@ -116,7 +116,7 @@ def _prepare(scene: Scene, dtype):
     cam = scene.camera
     if len(cam.batch_shape) > 1:
         raise ValueError(f"camera has batch shape {cam.batch_shape}; expected () or (N,)")
-    dtype = jnp.dtype(cam.dtype if dtype is None else dtype)
+    dtype = _kernel.pixel_dtype(cam.dtype if dtype is None else dtype)
     # On the host (a few numbers a frame): no eager device op, each a small compile.
     cam = jax.tree.map(lambda a: np.asarray(a, dtype), cam)
     if cam.batch_shape == ():
@@ -188,8 +188,9 @@ def render(
     - `accuracy`: replaces the scene's ray-map accuracy (radians).
     - `chunk_samples`: area samples a block (memory: about 100 bytes each).
     - `progress`: a progress bar (`None`: shown once the render has taken 2 s).
-    - `dtype`: the dtype pixels are computed in (default the camera's; float32 is
-      about twice as fast and keeps sky directions within 0.01 pixel).
+    - `dtype`: the dtype pixels are computed in, float32 or float64 (default the
+      camera's; float32 is about twice as fast and keeps sky directions within 0.01
+      pixel); another is a `ValueError`.
 
     **Returns:** linear float32 RGB `(H, W, 3)`, or `(N, H, W, 3)` for a batch of
     frames; captured rays are 0. A host driver: under `jit`, `vmap` or `grad` use
@@ -205,7 +206,7 @@ def render(
 
 def _prepared(scene: Scene, chunk_samples: int, dtype):
     """`(scene, plan, ray maps)` of a render: checked, with a frame axis, planned."""
-    _kernel.verify(scene)
+    _kernel.verify(scene, dtype)
     scene, dtype = _prepare(scene, dtype)
     p = plan(scene, chunk_samples=chunk_samples)
     with _compile_ahead(scene, p, dtype):
@@ -321,9 +322,11 @@ def render_array(
     `RayMap` of the camera's distance if built already (default: built inside, so
     gradients with respect to the distance flow through the table).
 
-    **Returns:** linear radiance `(H, W, 3)` in the camera's dtype; captured rays 0.
-    A bad traced value (distance <= 1, FOV outside (0, pi), disk radii) raises an
-    error at run time rather than giving a NaN image.
+    **Returns:** linear radiance `(H, W, 3)` in the camera's dtype (float32 or
+    float64; another is a `ValueError`); captured rays 0. A bad traced value (distance
+    <= 1, FOV outside (0, pi), a camera angle, or any field of the sky, motion or disk
+    outside its range, see `limits` on each) raises an error at run time rather than
+    giving a NaN image.
 
     Called eagerly (every value concrete), it checks the values on the host
     (`ValueError`) and runs as one compiled program, kept for later calls with the
@@ -344,7 +347,9 @@ def render_array(
             f"render_array takes one camera; got a batch of shape {cam.batch_shape} "
             "(use jax.vmap, or render for frames)"
         )
-    whole = cam.width * cam.height * cam.supersample**2 * 2
+    # The whole image as one block, also for a disk's smaller blocks (a plan of several
+    # would gather the disk's rays for one block only, and is refused below).
+    whole = cam.width * cam.height * cam.supersample**2 * 2 * _plan.DISK_BLOCK_DIVISOR
     p = _plan.plan(scene, chunk_samples=whole) if plan is None else plan
     if p.disk and p.disk_rays is not None and p.blocks != 1:
         raise ValueError(

@@ -14,6 +14,7 @@ A sky of one compact source subclasses `AbstractCompactSky` and also writes
 """
 
 import abc
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -21,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import _limits
 from .._camera import rotate, rotation_matrix
 from .._fastmath import arctan2
 from .._util import concrete as _concrete, has_tracer
@@ -35,7 +37,16 @@ class AbstractSky(eqx.Module):
 
     Subclass `AbstractRGBSky` for a sky without a spectrum (only `__call__` to
     write), or this class to give the sky its own `shifted`.
+
+    Each sky declares the valid range of its array fields in `limits` (`_limits`):
+    a known value outside it is a `ValueError` when the sky is built, a traced one an
+    error at run time in `render_array` (`_kernel.checked`).
     """
+
+    limits: ClassVar[dict[str, _limits.Limit]] = {}
+
+    def __check_init__(self):
+        _limits.check_fields(self)
 
     @abc.abstractmethod
     def __call__(self, n: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
@@ -165,23 +176,6 @@ def unrotate(n, yaw, pitch, roll):
     if all((c := _concrete(a)) is not None and np.all(c == 0) for a in (yaw, pitch, roll)):
         return n
     return rotate(rotation_matrix(yaw, pitch, roll).T, n)
-
-
-# ------------------------------------------------------------------ argument checks
-
-
-def positive(name, value, unit):
-    """ValueError unless a concrete `value` is finite and > 0 (`unit` for the message)."""
-    v = _concrete(value)
-    if v is not None and not np.all(np.isfinite(v) & (v > 0)):
-        raise ValueError(f"{name}={v.tolist()!r} must be finite and > 0 ({unit})")
-
-
-def finite(name, value, unit):
-    """ValueError unless a concrete `value` is finite (`unit` for the message)."""
-    v = _concrete(value)
-    if v is not None and not np.all(np.isfinite(v)):
-        raise ValueError(f"{name}={v.tolist()!r} must be finite ({unit})")
 
 
 # ------------------------------------------------------------------ images

@@ -2,18 +2,20 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .. import _schema
+from .. import _limits, _schema
 from .._color import _lookup
+from .._limits import real
 from .._schema import Key, anything
-from .._util import as_float as _farray
-from ._base import AbstractSky, angular_distance, direction_from_angles, positive
+from ._base import AbstractSky, angular_distance, direction_from_angles
 from ._table import bad_value, check_star_lists, star_directions, star_list_keys, value_range
+from .starfield import unit_rows
 
 
 class BlackbodyStars(AbstractSky):
@@ -21,33 +23,39 @@ class BlackbodyStars(AbstractSky):
     $A_i\\, e^{-d^2/2\\sigma_i^2}$ (angular distance $d$) times the colour of its
     temperature, luminance $A_i$ at rest.
 
-    **Fields:** `directions (N, 3)` (world unit vectors), `sigma (N,)` (radians),
-    `brightness (N,)` (peak luminance at rest), `temperature (N,)` (K).
+    **Fields:** `directions (N, 3)` (world unit vectors; given as finite non-zero
+    vectors of any length), `sigma (N,)` (radians, in $(0, \\pi)$), `brightness (N,)`
+    (peak luminance at rest, finite, at most 1e30 in magnitude), `temperature (N,)`
+    (K, finite and > 0).
     """
 
     directions: Float[Array, "N 3"]
     sigma: Float[Array, " N"]
     brightness: Float[Array, " N"]
     temperature: Float[Array, " N"]
+    limits: ClassVar = {
+        "directions": _limits.finite("non-zero 3-vectors"),
+        "sigma": _limits.between(0.0, math.pi, "finite and in (0, pi)", "radians"),
+        "brightness": _limits.radiance("luminance"),
+        "temperature": _limits.positive("K"),
+    }
 
     def __init__(self, directions, sigma, brightness=1.0, temperature=5800.0):
-        d = _farray(directions)
+        d = real("directions", directions)
         if d.ndim != 2 or d.shape[-1] != 3 or d.shape[0] < 1:
             raise ValueError(f"directions has shape {d.shape}; expected (N, 3) with N >= 1")
         n = d.shape[0]
-        self.directions = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        self.sigma = jnp.broadcast_to(_farray(sigma), (n,))
-        self.brightness = jnp.broadcast_to(_farray(brightness), (n,))
-        self.temperature = jnp.broadcast_to(_farray(temperature), (n,))
-
-    def __check_init__(self):
-        positive("sigma", self.sigma, "radians")
-        positive("temperature", self.temperature, "K")
+        self.directions = unit_rows(d)
+        self.sigma = jnp.broadcast_to(real("sigma", sigma), (n,))
+        self.brightness = jnp.broadcast_to(real("brightness", brightness), (n,))
+        self.temperature = jnp.broadcast_to(real("temperature", temperature), (n,))
 
     @classmethod
     def from_angles(cls, lon, lat, sigma, brightness=1.0, temperature=5800.0):
         """Stars at longitudes `lon`, latitudes `lat` (radians; `direction_from_angles`)."""
-        d = direction_from_angles(jnp.atleast_1d(_farray(lon)), jnp.atleast_1d(_farray(lat)))
+        d = direction_from_angles(
+            jnp.atleast_1d(real("lon", lon)), jnp.atleast_1d(real("lat", lat))
+        )
         return cls(d, sigma, brightness, temperature)
 
     @classmethod

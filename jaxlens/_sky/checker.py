@@ -2,14 +2,15 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .. import _schema
+from .. import _limits, _schema
+from .._limits import real
 from .._schema import Key, in_range
-from .._util import as_float as _farray
 from ._base import AbstractRGBSky, angles_from_direction, unrotate
 from ._table import BRIGHTNESS, ORIENTATION, orientation
 
@@ -21,7 +22,8 @@ class Checker(AbstractRGBSky):
     alternating, with thin white lines on the equator and the prime meridian.
 
     **Fields:** `n_lon`, `n_lat` (static, squares around and pole to pole),
-    `brightness`, `yaw`, `pitch`, `roll` (radians, as `Rotated`).
+    `brightness` (a scale in [0, 1e30]), `yaw`, `pitch`, `roll` (radians, finite, as
+    `Rotated`).
     """
 
     n_lon: int = eqx.field(static=True)
@@ -30,12 +32,13 @@ class Checker(AbstractRGBSky):
     yaw: Float[Array, ""]
     pitch: Float[Array, ""]
     roll: Float[Array, ""]
+    limits: ClassVar = {"brightness": _limits.scale(), **_limits.ORIENTATION}
 
     def __init__(self, n_lon: int = 24, n_lat: int = 12, *, brightness=1.0, yaw=0.0, pitch=0.0,
                  roll=0.0):  # fmt: skip
         self.n_lon, self.n_lat = int(n_lon), int(n_lat)
-        self.brightness = _farray(brightness)
-        self.yaw, self.pitch, self.roll = _farray(yaw), _farray(pitch), _farray(roll)
+        self.brightness = real("brightness", brightness)
+        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
 
     def __check_init__(self):
         if self.n_lon < 1 or self.n_lat < 1:

@@ -2,6 +2,7 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -9,10 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import _schema
+from .. import _limits, _schema
 from .._fastmath import arctan2
+from .._limits import real
 from .._schema import Key, anything
-from .._util import as_float as _farray
 from ._base import AbstractRGBSky
 from ._table import BRIGHTNESS
 
@@ -130,7 +131,7 @@ class DefaultSky(AbstractRGBSky):
     at hashed positions, more of them near the band, so evaluating the sky costs the
     same for every direction.
 
-    **Fields:** `brightness` (overall scale), `cells` (static: cells a cube face of
+    **Fields:** `brightness` (overall scale, in [0, 1e30]), `cells` (static: cells a cube face of
     the faint star layer), `star_size` (static: Gaussian sigma of a star, in units of
     its cell), `stars` (static: include the star layers).
     """
@@ -139,10 +140,11 @@ class DefaultSky(AbstractRGBSky):
     cells: int = eqx.field(static=True)
     star_size: float = eqx.field(static=True)
     stars: bool = eqx.field(static=True)
+    limits: ClassVar = {"brightness": _limits.scale()}
 
     def __init__(self, brightness: ArrayLike = 1.0, *, cells: int = 256, star_size: float = 0.08,
                  stars: bool = True):  # fmt: skip
-        self.brightness = _farray(brightness)
+        self.brightness = real("brightness", brightness)
         self.cells = int(cells)
         self.star_size = float(star_size)
         self.stars = bool(stars)

@@ -2,14 +2,15 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import _schema
-from .._util import as_float as _farray
-from ._base import AbstractRGBSky, angles_from_direction, bilinear, finite, to_rgb, unrotate
+from .. import _limits, _schema
+from .._limits import real
+from ._base import AbstractRGBSky, angles_from_direction, bilinear, to_rgb, unrotate
 from ._table import BRIGHTNESS, IMAGE_PATH, ORIENTATION, orientation
 
 
@@ -35,8 +36,9 @@ class Panorama(AbstractRGBSky):
     into the mean of that row, so the pole has one value and no pinch.
 
     **Fields:** `texels (h + 2, w + 1, 3)`: the image in linear radiance, framed for
-    the look-up (`image` gives it back); `brightness` (scale), `yaw`, `pitch`, `roll`
-    (radians: the panorama's orientation, the old programs' "offset"; see `Rotated`).
+    the look-up (`image` gives it back; finite); `brightness` (scale, in [0, 1e30]),
+    `yaw`, `pitch`, `roll` (radians, finite: the panorama's orientation, the old
+    programs' "offset"; see `Rotated`).
     """
 
     texels: Float[Array, "h2 w1 3"]
@@ -44,6 +46,11 @@ class Panorama(AbstractRGBSky):
     yaw: Float[Array, ""]
     pitch: Float[Array, ""]
     roll: Float[Array, ""]
+    limits: ClassVar = {
+        "texels": _limits.texture(),
+        "brightness": _limits.scale(),
+        **_limits.ORIENTATION,
+    }
 
     def __init__(self, image: ArrayLike, *, brightness=1.0, yaw=0.0, pitch=0.0, roll=0.0):
         """**Arguments:** `image`: `(h, w)` or `(h, w, 1..4)` linear radiance (see
@@ -51,12 +58,8 @@ class Panorama(AbstractRGBSky):
         if not isinstance(image, jax.core.Tracer):
             image = jnp.asarray(to_rgb(image, name="panorama image"))
         self.texels = _panorama_texels(image)
-        self.brightness = _farray(brightness)
-        self.yaw, self.pitch, self.roll = _farray(yaw), _farray(pitch), _farray(roll)
-
-    def __check_init__(self):
-        for name in ("brightness", "yaw", "pitch", "roll"):
-            finite(name, getattr(self, name), "radians" if name != "brightness" else "scale")
+        self.brightness = real("brightness", brightness)
+        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
 
     @property
     def image(self) -> Float[Array, "h w 3"]:

@@ -2,15 +2,17 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .. import _schema
+from .. import _limits, _schema
+from .._limits import real
 from .._schema import Key, greater, in_range
-from .._util import as_float as _farray, concrete as _concrete
+from .._util import concrete as _concrete
 from ._base import AbstractRGBSky, bilinear, to_rgb, unrotate
 from ._table import BRIGHTNESS, IMAGE_PATH, ORIENTATION, orientation
 
@@ -24,9 +26,9 @@ class PlaneImage(AbstractRGBSky):
     width $= 2\\arctan(S / 2L)$; this takes each ray's asymptote through the hole's
     centre, exact when $L$ is large against the rays' impact parameters.
 
-    **Fields:** `image (h, w, 3)` linear radiance, `width` (radians, full horizontal
-    angle, in $(0, \\pi)$), `brightness`, `yaw`, `pitch`, `roll` (radians, as
-    `Rotated`).
+    **Fields:** `image (h, w, 3)` linear radiance (finite), `width` (radians, full
+    horizontal angle, in $(0, \\pi)$), `brightness` (scale, in [0, 1e30]), `yaw`,
+    `pitch`, `roll` (radians, finite, as `Rotated`).
     """
 
     image: Float[Array, "h w 3"]
@@ -35,15 +37,21 @@ class PlaneImage(AbstractRGBSky):
     yaw: Float[Array, ""]
     pitch: Float[Array, ""]
     roll: Float[Array, ""]
+    limits: ClassVar = {
+        "image": _limits.texture(),
+        "width": _limits.between(0.0, math.pi, "finite and in (0, pi)", "radians"),
+        "brightness": _limits.scale(),
+        **_limits.ORIENTATION,
+    }
 
     def __init__(self, image, width, *, brightness=1.0, yaw=0.0, pitch=0.0, roll=0.0):
         if isinstance(image, jax.core.Tracer):
             self.image = image
         else:
             self.image = jnp.asarray(to_rgb(image, name="plane image"))
-        self.width = _farray(width)
-        self.brightness = _farray(brightness)
-        self.yaw, self.pitch, self.roll = _farray(yaw), _farray(pitch), _farray(roll)
+        self.width = real("width", width)
+        self.brightness = real("brightness", brightness)
+        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
 
     def __check_init__(self):
         wv = _concrete(self.width)

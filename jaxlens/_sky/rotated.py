@@ -1,9 +1,12 @@
 """Another sky, turned."""
 
+from typing import ClassVar
+
 from jaxtyping import Array, Float
 
+from .. import _limits
 from .._camera import rotate, rotation_matrix
-from .._util import as_float as _farray
+from .._limits import real
 from ._base import AbstractSky
 
 
@@ -12,17 +15,18 @@ class Rotated(AbstractSky):
     at direction $m$ appears at $R m$; with only yaw, the sky turns toward $+x$.
 
     **Fields:** `sky` (any `AbstractSky`; its spectrum, if any, is kept: `shifted`
-    turns the directions and asks it), `yaw`, `pitch`, `roll` (radians).
+    turns the directions and asks it), `yaw`, `pitch`, `roll` (radians, finite).
     """
 
     sky: AbstractSky
     yaw: Float[Array, ""]
     pitch: Float[Array, ""]
     roll: Float[Array, ""]
+    limits: ClassVar = dict(_limits.ORIENTATION)
 
     def __init__(self, sky: AbstractSky, yaw=0.0, pitch=0.0, roll=0.0):
         self.sky = sky
-        self.yaw, self.pitch, self.roll = _farray(yaw), _farray(pitch), _farray(roll)
+        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
 
     def __check_init__(self):
         if not isinstance(self.sky, AbstractSky):

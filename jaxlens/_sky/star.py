@@ -2,24 +2,28 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import _schema
-from .._schema import Key, anything
-from .._util import as_float as _farray, concrete as _concrete, to_device
-from ._base import AbstractCompactSky, angular_distance, direction_from_angles, finite, positive
+from .. import _limits, _schema
+from .._limits import real
+from .._schema import Key, anything, cut
+from .._util import concrete as _concrete, to_device
+from ._base import AbstractCompactSky, angular_distance, direction_from_angles
 from ._table import SIGMA
 
 
 class GaussianStar(AbstractCompactSky):
     """A star of Gaussian profile in angular distance $d$: $I = A e^{-d^2 / 2\\sigma^2}$.
 
-    **Fields:** `sigma` (radians, standard deviation in great-circle angle),
-    `brightness` $A$ (peak radiance), `direction` (3-vector, need not be unit
-    length; default $+z$, exactly behind the hole), `color` (RGB weights).
+    **Fields:** `sigma` (radians, standard deviation in great-circle angle, in
+    $(0, \\pi)$), `brightness` $A$ (peak radiance, finite, at most 1e30 in magnitude:
+    a fit may pass through negative values), `direction` (a finite non-zero 3-vector,
+    need not be unit length; default $+z$, exactly behind the hole), `color` (RGB
+    weights, as `brightness`).
 
     Give the position either as `direction` or as `lon`, `lat` (radians; see
     `direction_from_angles`).
@@ -29,6 +33,12 @@ class GaussianStar(AbstractCompactSky):
     brightness: Float[Array, ""]
     direction: Float[Array, "3"]
     color: Float[Array, "3"]
+    limits: ClassVar = {
+        "sigma": _limits.between(0.0, math.pi, "finite and in (0, pi)", "radians"),
+        "brightness": _limits.radiance(),
+        "direction": _limits.finite("a non-zero 3-vector"),
+        "color": _limits.radiance("RGB weights"),
+    }
 
     def __init__(
         self,
@@ -40,28 +50,28 @@ class GaussianStar(AbstractCompactSky):
         lon: ArrayLike | None = None,
         lat: ArrayLike | None = None,
     ):
-        positive("sigma", sigma, "radians")
-        self.sigma = _farray(sigma)
-        self.brightness = _farray(brightness)
+        self.sigma = real("sigma", sigma)
+        self.brightness = real("brightness", brightness)
         if lon is not None or lat is not None:
             if direction is not None:
                 raise ValueError("give the star position as direction or as lon/lat, not both")
-            d = direction_from_angles(0.0 if lon is None else lon, 0.0 if lat is None else lat)
+            d = direction_from_angles(real("lon", 0.0 if lon is None else lon),
+                                      real("lat", 0.0 if lat is None else lat))  # fmt: skip
         else:
-            d = _farray((0.0, 0.0, 1.0) if direction is None else direction)
+            d = real("direction", (0.0, 0.0, 1.0) if direction is None else direction)
             c = _concrete(d)
             if c is not None and (c.shape != (3,) or not np.all(np.isfinite(c)) or not c.any()):
-                raise ValueError(f"direction={c.tolist()!r} must be a finite non-zero 3-vector")
-            d = (
-                to_device(c / np.linalg.norm(c), d.dtype)
-                if c is not None
-                else d / jnp.linalg.norm(d)
-            )
+                raise ValueError(f"direction={cut(repr(c.tolist()))} must be a finite non-zero "
+                                 "3-vector")  # fmt: skip
+            # Scaled by the largest component first: the norm of (1e200, 0, 0) is inf.
+            if c is not None:
+                c = c / np.max(np.abs(c))
+                d = to_device(c / np.linalg.norm(c), d.dtype)
+            else:
+                d = d / jnp.max(jnp.abs(d))
+                d = d / jnp.linalg.norm(d)
         self.direction = d
-        self.color = _farray(color)
-
-    def __check_init__(self):
-        finite("brightness", self.brightness, "linear radiance")
+        self.color = real("color", color)
 
     def __call__(self, n):
         dt = n.dtype

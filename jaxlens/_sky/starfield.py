@@ -2,6 +2,7 @@
 
 import math
 from pathlib import Path
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -9,11 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import _schema
+from .. import _limits, _schema
 from .._fastmath import arctan2
+from .._limits import real
 from .._schema import Key, anything
-from .._util import as_float as _farray
-from ._base import AbstractRGBSky, direction_from_angles, positive
+from .._util import concrete as _concrete
+from ._base import AbstractRGBSky, direction_from_angles
 from ._table import check_star_lists, star_directions, star_list_keys, value_range
 
 
@@ -24,8 +26,10 @@ class StarField(AbstractRGBSky):
     through `lax.scan`, so memory is `block` x the number of directions): use it for
     up to a few hundred stars. The procedural `DefaultSky` holds millions.
 
-    **Fields:** `directions (N, 3)` (unit vectors), `sigma (N,)` (radians),
-    `brightness (N,)` (peak radiance), `color (N, 3)`; `block` (static).
+    **Fields:** `directions (N, 3)` (unit vectors; given as finite non-zero vectors of
+    any length), `sigma (N,)` (radians, in $(0, \\pi)$), `brightness (N,)` (peak
+    radiance) and `color (N, 3)` (RGB weights), both finite and at most 1e30 in
+    magnitude; `block` (static).
     """
 
     directions: Float[Array, "N 3"]
@@ -33,6 +37,12 @@ class StarField(AbstractRGBSky):
     brightness: Float[Array, " N"]
     color: Float[Array, "N 3"]
     block: int = eqx.field(static=True)
+    limits: ClassVar = {
+        "directions": _limits.finite("non-zero 3-vectors"),
+        "sigma": _limits.between(0.0, math.pi, "finite and in (0, pi)", "radians"),
+        "brightness": _limits.radiance(),
+        "color": _limits.radiance("RGB weights"),
+    }
 
     def __init__(
         self,
@@ -43,15 +53,14 @@ class StarField(AbstractRGBSky):
         *,
         block: int = 16,
     ):
-        d = _farray(directions)
+        d = real("directions", directions)
         if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
             raise ValueError(f"directions has shape {d.shape}; expected (N, 3) with N >= 1")
         n = d.shape[0]
-        positive("sigma", sigma, "radians")
-        self.directions = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        self.sigma = jnp.broadcast_to(_farray(sigma), (n,))
-        self.brightness = jnp.broadcast_to(_farray(brightness), (n,))
-        self.color = jnp.broadcast_to(_farray(color), (n, 3))
+        self.directions = unit_rows(d)
+        self.sigma = jnp.broadcast_to(real("sigma", sigma), (n,))
+        self.brightness = jnp.broadcast_to(real("brightness", brightness), (n,))
+        self.color = jnp.broadcast_to(real("color", color), (n, 3))
         self.block = int(block)
 
     @classmethod
@@ -93,19 +102,36 @@ class StarField(AbstractRGBSky):
         e1 = e1 / jnp.linalg.norm(e1, axis=-1, keepdims=True)
         e2 = jnp.cross(s, e1)
         basis = jnp.stack([e1, e2, s], axis=1).reshape(nb, self.block * 3, 3)
-        inv2s2 = (0.5 / padded(self.sigma, 1.0) ** 2).reshape(nb, self.block)
+        # 1/sigma, not 1/(2 sigma^2): the latter overflows for sigma < 1e-19 (float32),
+        # and the star's own centre (d = 0) would be 0 * inf.
+        inv_s = (1.0 / padded(self.sigma, 1.0)).reshape(nb, self.block)
         amp = padded(self.brightness, 0.0).reshape(nb, self.block)
         col = padded(self.color, 0.0).reshape(nb, self.block, 3)
 
         def step(acc, blk):
             b, w, a, c = blk
             p = (flat @ b.T).reshape(-1, self.block, 3)
-            d = arctan2(jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2), p[..., 2])
-            i = a * jnp.exp(-(d * d) * w)
+            d = arctan2(jnp.sqrt(p[..., 0] ** 2 + p[..., 1] ** 2), p[..., 2]) * w
+            i = a * jnp.exp(-0.5 * (d * d))
             return acc + i @ c, None
 
-        acc, _ = jax.lax.scan(step, jnp.zeros((flat.shape[0], 3), dt), (basis, inv2s2, amp, col))
+        acc, _ = jax.lax.scan(step, jnp.zeros((flat.shape[0], 3), dt), (basis, inv_s, amp, col))
         return acc.reshape(shape + (3,))
+
+
+def unit_rows(d):
+    """The rows of `d (N, 3)` as unit vectors: scaled by their largest component
+    first (the norm of (1e200, 0, 0) overflows). A known row that is zero or not
+    finite is a `ValueError`; a traced one gives NaN, which the sky's `limits` refuse."""
+    c = _concrete(d)
+    if c is not None:
+        bad = ~np.all(np.isfinite(c), axis=-1) | ~np.any(c != 0, axis=-1)
+        if np.any(bad):
+            row = c[bad][0].tolist()
+            raise ValueError(f"directions: row {int(np.argmax(bad))} = {row!r} must be a "
+                             "finite non-zero 3-vector")  # fmt: skip
+    d = d / jnp.max(jnp.abs(d), axis=-1, keepdims=True)
+    return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
 def _check(where: str, fields: dict) -> None:

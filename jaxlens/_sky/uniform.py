@@ -1,30 +1,32 @@
 """A uniform sky level."""
 
 from pathlib import Path
+from typing import ClassVar
 
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import _schema
+from .. import _limits, _schema
+from .._limits import real
 from .._schema import Key, anything
-from .._util import as_float as _farray
-from ._base import AbstractRGBSky, finite
+from ._base import AbstractRGBSky
 
 
 class Uniform(AbstractRGBSky):
     """A uniform sky level (the "floor"): linear radiance, a scalar or one per
     channel (RGB).
 
-    **Fields:** `level`: linear radiance, shape `()`, `(1,)` or `(3,)`.
+    **Fields:** `level`: linear radiance, shape `()`, `(1,)` or `(3,)`; finite and at
+    most 1e30 in magnitude (a fitted floor may be slightly negative).
     """
 
     level: Float[Array, "*c"]
+    limits: ClassVar = {"level": _limits.radiance()}
 
     def __init__(self, level: ArrayLike = 0.0):
-        self.level = _farray(level)
+        self.level = real("level", level)
 
     def __check_init__(self):
-        finite("level", self.level, "linear radiance")
         if self.level.shape not in ((), (1,), (3,)):
             raise ValueError(f"level has shape {self.level.shape}; expected a scalar or RGB (3,)")
 
