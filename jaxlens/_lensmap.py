@@ -18,10 +18,42 @@ ratio of solid angles, $\\mu = [\\sin\\alpha/\\alpha]\\,/\\,[\\sin\\theta/\\thet
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._camera import Camera, sky_direction
 from ._raymap import RayMap
+from ._trace import DISTANCE_MESSAGE, _check_distance, _check_real, _distance_bad, _show
+from ._util import concrete
+
+
+def _checked_map(ray_map: RayMap) -> RayMap:
+    """`ray_map` with its distance checked as `trace` checks it (a map's distance may
+    have been set by `eqx.tree_at`): a `ValueError` when known, `eqx.error_if` when
+    traced, on the knot values (which every use reads; the distance itself may not be)."""
+    if not isinstance(ray_map, RayMap):
+        raise TypeError(f"ray_map={_show(ray_map)} must be a RayMap (jl.RayMap.build(distance))")
+    if concrete(ray_map.distance) is not None:
+        _check_distance(concrete(ray_map.distance))
+        return ray_map
+    phi = eqx.error_if(ray_map.phi, _distance_bad(ray_map.distance), DISTANCE_MESSAGE)
+    return eqx.tree_at(lambda m: m.phi, ray_map, phi)
+
+
+def _checked_points(name: str, x, valid: str, bad_of):
+    """`x` (real numbers) checked with `bad_of(x, xp)` (True where bad): a `ValueError`
+    naming `name`, the first bad value and `valid` when known, `eqx.error_if` (one
+    reduction) when traced."""
+    _check_real(name, x)
+    c = concrete(x)
+    if c is not None:
+        c = np.asarray(c, float)
+        bad = bad_of(c, np)
+        if np.any(bad):
+            raise ValueError(f"{name}={_show(c[bad][0].tolist())} is not valid: {valid}")
+        return x
+    x = jnp.asarray(x, jnp.result_type(float, x))
+    return eqx.error_if(x, jnp.any(bad_of(x, jnp)), f"{name} must be {valid}")
 
 
 def lens_map(p: Float[Array, "... 2"], ray_map: RayMap) -> Float[Array, "... 2"]:
@@ -50,8 +82,24 @@ def point_lens_magnification(u: ArrayLike):
 
 def magnification(p: Float[Array, "... 2"], ray_map: RayMap) -> Float[Array, "..."]:
     """Signed magnification (solid-angle ratio; negative for mirrored images) of the
-    image at image-plane point `p` (radians, see `lens_map`) for the camera of
-    `ray_map`, from `jax.jacfwd` of the lens map."""
+    image at image-plane point `p` (radians, see `lens_map`; finite, not at the origin,
+    the direction of the hole, last axis of 2) for the camera of `ray_map` (its distance
+    $1 < D \\le 10^{30}$, units of R_S), from `jax.jacfwd` of the lens map.
+
+    A bad value is a `ValueError` naming it, eagerly, and an `eqx.error_if` error under
+    `jit`."""
+    ray_map = _checked_map(ray_map)
+    if jnp.shape(p)[-1:] != (2,):
+        raise ValueError(f"p has shape {jnp.shape(p)}: its last axis must hold 2 coordinates")
+    p = _checked_points(
+        "p", p, "finite and not (0, 0) (radians)",
+        lambda x, xp: xp.any(~xp.isfinite(x), axis=-1) | xp.all(x == 0, axis=-1),
+    )  # fmt: skip
+    return _magnification(p, ray_map)
+
+
+def _magnification(p, ray_map: RayMap):
+    """`magnification` of checked values."""
     p = jnp.asarray(p, ray_map.phi.dtype)
     batch = p.shape[:-1]
     flat = p.reshape(-1, 2)
@@ -91,21 +139,37 @@ class LensedImages(eqx.Module):
         return x + 0.5 * camera.width, 0.5 * camera.height - y
 
 
-@eqx.filter_jit
 def point_source_images(
     direction: Float[Array, "... 3"], ray_map: RayMap, *, order: int = 0
 ) -> LensedImages:
     """Images of sources at infinity in camera-frame `direction`s (3-vectors, $+z$
     behind the hole) for the static camera of `ray_map`
-    (`RayMap.build(distance, accuracy=...)`, distance in units of R_S).
+    (`RayMap.build(distance, accuracy=...)`, distance $1 < D \\le 10^{30}$ in units of
+    R_S).
 
-    **Arguments:** `direction (..., 3)`; `ray_map`; `order` (static): 0 for the
-    primary and secondary images, $m \\ge 1$ for the relativistic pair near the shadow.
+    **Arguments:** `direction (..., 3)` (finite, non-zero; any length); `ray_map`;
+    `order` (static, a whole number $\\ge 0$): 0 for the primary and secondary images,
+    $m \\ge 1$ for the relativistic pair near the shadow.
 
-    **Returns:** `LensedImages`. Works under `jit`, `vmap`, `grad`.
+    **Returns:** `LensedImages`. Works under `jit`, `vmap`, `grad`. A bad value is a
+    `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
     """
-    if order < 0:
-        raise ValueError(f"order={order!r} must be >= 0")
+    if isinstance(order, bool) or not isinstance(order, int | np.integer) or order < 0:
+        raise ValueError(f"order={_show(order)} must be a whole number >= 0")
+    ray_map = _checked_map(ray_map)
+    if jnp.shape(direction)[-1:] != (3,):
+        raise ValueError(
+            f"direction has shape {jnp.shape(direction)}: its last axis must hold 3 components"
+        )
+    direction = _checked_points(
+        "direction", direction, "a finite, non-zero 3-vector",
+        lambda x, xp: xp.any(~xp.isfinite(x), axis=-1) | xp.all(x == 0, axis=-1),
+    )  # fmt: skip
+    return _point_source_images(direction, ray_map, order=int(order))
+
+
+@eqx.filter_jit
+def _point_source_images(direction, ray_map: RayMap, *, order: int) -> LensedImages:
     n = jnp.asarray(direction, jnp.result_type(float, direction))
     rho = jnp.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2)
     theta = jnp.arctan2(rho, n[..., 2])
@@ -115,5 +179,5 @@ def point_source_images(
     alpha = ray_map.solve(targets)
     betas = jnp.stack([beta, beta + jnp.pi])
     p = jnp.stack([alpha * jnp.cos(betas), alpha * jnp.sin(betas)], axis=-1)
-    mu = magnification(p, ray_map)
+    mu = _magnification(p, ray_map)
     return LensedImages(alpha, betas, mu, theta)

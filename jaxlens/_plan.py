@@ -32,7 +32,7 @@ import numpy as np
 
 from . import _kernel
 from ._util import is_concrete
-from ._weak import WEAK_MAX_SAMPLES, weak_field_escape_angle
+from ._weak import WEAK_MAX_SAMPLES, weak_field_series
 
 CHUNK_SAMPLES = 1 << 21  # default area samples a compiled block holds
 _BUCKETS = 16
@@ -155,7 +155,7 @@ def _weak_bound(scene, plan, rows):
     """The weak-field series' largest truncation bound over the static angles of one
     frame's samples (radians), as one compiled program."""
     alpha = _kernel.static_alpha(scene, plan, 0, rows)
-    return jnp.max(weak_field_escape_angle(alpha, scene.camera.distance)[1])
+    return jnp.max(weak_field_series(alpha, scene.camera.distance)[1])
 
 
 @eqx.filter_jit

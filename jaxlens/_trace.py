@@ -453,12 +453,18 @@ def _check_distance(distance, dtype=None):
                 "jax_enable_x64 on for a camera this close"
             )
         return distance
-    return eqx.error_if(
-        distance,
-        ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > MAX_DISTANCE),
-        "distance must be finite and > 1 (units of R_S, the horizon is at 1), and at most "
-        f"{MAX_DISTANCE:g}",
-    )
+    return eqx.error_if(distance, _distance_bad(distance), DISTANCE_MESSAGE)
+
+
+DISTANCE_MESSAGE = (
+    "distance must be finite and > 1 (units of R_S, the horizon is at 1), and at most "
+    f"{MAX_DISTANCE:g}"
+)
+
+
+def _distance_bad(distance):
+    """Where a traced `distance` is out of range (the predicate of `_check_distance`)."""
+    return ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > MAX_DISTANCE)
 
 
 _ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"

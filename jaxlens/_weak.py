@@ -61,7 +61,41 @@ def weak_field_terms(y0, c0=None):
 
 def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int = WEAK_ORDER):
     """Escape angle of rays with a far periapsis, as a series in $u_2 = 1/r_0$, with a
-    rigorous bound on the truncation error.
+    rigorous bound on the truncation error (`weak_field_series`, its values checked).
+
+    **Arguments:** `alpha` (local angle from the hole, radians in $[0, \\pi]$),
+    `distance` (camera radius, units of R_S, $1 < D \\le 10^{30}$ as for `trace`; the
+    series applies only outside the photon sphere, $D > 1.5$, and `bound` is `inf`
+    elsewhere); `order` $N \\in \\{1, 2, 3\\}$ (static).
+
+    **Returns:** `(phi, bound)`, radians; `bound` is `inf` where the series is not used
+    (near rays, $b \\le 2 b_c$, or $1.5 u_2 \\ge 1/2$; every ray of a camera inside
+    the photon sphere).
+
+    A value out of range is a `ValueError` naming it (complex or text values a
+    `TypeError`), eagerly, and an `eqx.error_if` error at run time under `jit`.
+    """
+    import equinox as eqx
+
+    from ._trace import _ALPHA_RANGE, _bad_alpha, _check_distance, _check_dtype, _check_real
+
+    if order not in (1, 2, 3):
+        raise ValueError(f"order={order!r} must be 1, 2 or 3")
+    _check_real("alpha", alpha)
+    _check_real("distance", distance)
+    dtype = _check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
+    distance = _check_distance(distance, dtype)
+    bad = _bad_alpha(alpha)
+    phi, bound = weak_field_series(alpha, distance, order=order)
+    if bad is not None:
+        phi = eqx.error_if(phi, bad, "alpha must be " + _ALPHA_RANGE)
+    return phi, bound
+
+
+def weak_field_series(alpha: ArrayLike, distance: ArrayLike, *, order: int = WEAK_ORDER):
+    """Escape angle of rays with a far periapsis, as a series in $u_2 = 1/r_0$, with a
+    rigorous bound on the truncation error; the values are not checked (the renderer
+    and the plan call it on checked ones).
 
     With $u = u_2\\sin t$ the azimuth from the asymptote to $u$ is exactly
     $\\int_0^{t}[1 - u_2 h(\\sin t')]^{-1/2} dt'$, $h(s) = s + 1/(1+s) \\in [1, 3/2]$;
@@ -73,10 +107,12 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
     $L = \\pi - t_0$ (inward) or $t_0$ (outward).
 
     **Arguments:** `alpha` (local angle from the hole, radians), `distance` (camera
-    radius, units of R_S; $D > 1.5$); `order` $N \\in \\{1, 2, 3\\}$ (static).
+    radius, units of R_S; $D > 1$, the series applies for $D > 1.5$); `order`
+    $N \\in \\{1, 2, 3\\}$ (static).
 
-    **Returns:** `(phi, bound)`, radians; `bound` is `inf` where $1.5u_2 \\ge 1/2$
-    (the series is not used there).
+    **Returns:** `(phi, bound)`, radians; `bound` is `inf` where $b \\le 2 b_c$ or
+    $1.5u_2 \\ge 1/2$, where the series is not used (every ray of a camera at
+    $D \\le 1.5$: there $b \\le D^{3/2}/\\sqrt{D - 1} \\le b_c$).
     """
     if order not in (1, 2, 3):
         raise ValueError(f"order={order!r} must be 1, 2 or 3")

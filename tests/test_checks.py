@@ -226,3 +226,54 @@ def test_camera_takes_the_largest_values():
     cam = jl.Camera(1e30, 1.0, (1 << 20) - 1, 1, supersample=64, dtype=np.float32)
     assert float(cam.distance) == pytest.approx(1e30, rel=1e-7) and cam.width == 1048575
     assert jl.Camera(np.float32(1e30), np.float32(1.0), 16, 12).dtype == np.float32
+
+
+def test_weak_field_series_refuses_a_camera_inside_the_horizon():
+    # (0.3, 0.5) gave a finite escape angle and bound.
+    with pytest.raises(ValueError, match=r"distance=0.5 is not a valid camera radius"):
+        jl.weak_field_escape_angle(0.3, 0.5)
+    with pytest.raises(ValueError, match=r"alpha=nan is not a valid local angle"):
+        jl.weak_field_escape_angle(math.nan, 50.0)
+    f = jax.jit(lambda d: jl.weak_field_escape_angle(jnp.asarray([0.3]), d)[0])
+    assert np.all(np.isfinite(np.asarray(f(50.0))))
+    with pytest.raises(Exception, match="distance must be finite and > 1"):
+        jax.block_until_ready(f(0.5))
+
+
+_MAP = None
+
+
+def _ray_map():
+    global _MAP
+    if _MAP is None:
+        _MAP = jl.RayMap.build(20.0, accuracy=1e-8)
+    return _MAP
+
+
+def test_point_images_refuse_a_map_of_a_bad_distance():
+    # A map's distance set by tree_at (RayMap.build refuses it now): NaN images before.
+    bad = eqx.tree_at(lambda m: m.distance, _ray_map(), jnp.asarray(0.5))
+    source = np.asarray([0.1, 0.0, 1.0])
+    with pytest.raises(ValueError, match="distance=0.5 is not a valid camera radius"):
+        jl.point_source_images(source, bad)
+    with pytest.raises(ValueError, match="distance=0.5 is not a valid camera radius"):
+        jl.magnification(np.asarray([0.3, 0.0]), bad)
+    with pytest.raises(ValueError, match=r"direction=\[0.0, 0.0, 0.0\] is not valid: a finite, "
+                       "non-zero 3-vector"):  # fmt: skip
+        jl.point_source_images(np.zeros(3), _ray_map())
+    with pytest.raises(ValueError, match=r"p=\[nan, 0.0\] is not valid"):
+        jl.magnification(np.asarray([math.nan, 0.0]), _ray_map())
+
+
+def test_point_images_check_their_values_under_jit():
+    def alpha(d, source):
+        ray_map = eqx.tree_at(lambda m: m.distance, _ray_map(), d)
+        return jl.point_source_images(source, ray_map).alpha
+
+    f = jax.jit(alpha)
+    good = jnp.asarray([0.1, 0.0, 1.0])
+    assert np.all(np.isfinite(np.asarray(f(jnp.asarray(20.0), good))))
+    with pytest.raises(Exception, match="distance must be finite and > 1"):
+        jax.block_until_ready(f(jnp.asarray(0.5), good))
+    with pytest.raises(Exception, match="direction must be a finite, non-zero 3-vector"):
+        jax.block_until_ready(f(jnp.asarray(20.0), jnp.asarray([math.nan, 0.0, 1.0])))
