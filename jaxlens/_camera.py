@@ -140,8 +140,10 @@ class Camera(eqx.Module):
 
         angles = {"fov": fov, "yaw": yaw, "pitch": pitch, "roll": roll,
                   "azimuth": azimuth, "elevation": elevation}  # fmt: skip
-        for name, value in {"distance": distance, **angles}.items():
-            _check_real(name, value)
+        for name, value in angles.items():
+            angles[name] = _check_real(name, value)
+        distance = _check_real("distance", distance)
+        fov, yaw, pitch, roll, azimuth, elevation = angles.values()
         dtype = _check_dtype(jnp.result_type(float, distance, fov) if dtype is None else dtype)
         for name, value in angles.items():  # before the cast, which would give inf
             a = _concrete(value)

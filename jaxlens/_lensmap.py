@@ -44,7 +44,7 @@ def _checked_points(name: str, x, valid: str, bad_of):
     """`x` (real numbers) checked with `bad_of(x, xp)` (True where bad): a `ValueError`
     naming `name`, the first bad value and `valid` when known, `eqx.error_if` (one
     reduction) when traced."""
-    _check_real(name, x)
+    x = _check_real(name, x)
     c = concrete(x)
     if c is not None:
         c = np.asarray(c, float)

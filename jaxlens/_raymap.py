@@ -123,7 +123,7 @@ class RayMap(eqx.Module):
         """
         from ._trace import _check_distance, _check_dtype, _check_real
 
-        _check_real("distance", distance)
+        distance = _check_real("distance", distance)
         dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
         distance = _check_distance(distance, dtype)
         return tabulate(

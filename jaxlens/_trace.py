@@ -392,15 +392,22 @@ def _show(value, limit: int = 80) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _check_real(name: str, x) -> None:
-    """TypeError unless `x` holds real numbers (integers are converted; complex, bool,
-    text and objects are not), naming `name` and the value."""
+def _check_real(name: str, x):
+    """`x` if it holds real numbers (a list or tuple as a NumPy array), else a TypeError
+    naming `name` and the value (integers are converted; complex, bool, text and
+    objects are not)."""
+    if isinstance(x, list | tuple):
+        try:
+            x = np.asarray(x)
+        except (TypeError, ValueError):  # ragged
+            x = np.asarray(x, dtype=object)
     try:
         kind = np.dtype(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
     except (TypeError, ValueError):
         kind = np.dtype(object)
     if kind.kind not in "iuf":
         raise TypeError(f"{name}={_show(x)} must be real numbers (float or int), got dtype {kind}")
+    return x
 
 
 def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
@@ -541,8 +548,8 @@ def trace(
             f"method={_show(method)} must be one of {', '.join(map(repr, METHODS))} or an "
             "AbstractMethod instance (e.g. jl.RK4(dphi=0.01))"
         )
-    _check_real("alpha", alpha)
-    _check_real("distance", distance)
+    alpha = _check_real("alpha", alpha)
+    distance = _check_real("distance", distance)
     dtype = _check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
     distance = _check_distance(distance, dtype)
     bad_alpha = _bad_alpha(alpha)

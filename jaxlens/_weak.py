@@ -81,8 +81,8 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
 
     if order not in (1, 2, 3):
         raise ValueError(f"order={order!r} must be 1, 2 or 3")
-    _check_real("alpha", alpha)
-    _check_real("distance", distance)
+    alpha = _check_real("alpha", alpha)
+    distance = _check_real("distance", distance)
     dtype = _check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
     distance = _check_distance(distance, dtype)
     bad = _bad_alpha(alpha)
