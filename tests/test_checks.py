@@ -277,3 +277,37 @@ def test_point_images_check_their_values_under_jit():
         jax.block_until_ready(f(jnp.asarray(0.5), good))
     with pytest.raises(Exception, match="direction must be a finite, non-zero 3-vector"):
         jax.block_until_ready(f(jnp.asarray(20.0), jnp.asarray([math.nan, 0.0, 1.0])))
+
+
+_ring_angle = jax.jit(jl.einstein_ring_angle)  # a program a dtype, scalar distances
+
+
+def test_einstein_ring_angle_refuses_rings_no_camera_sees():
+    # NaN below D = 1.760309 (the docstring said "D <~ 1.9").
+    for d in (1.76, 1.7, 1.6):
+        with pytest.raises(ValueError, match=rf"distance={d} is below 1.7603089815759632 R_S"):
+            jl.einstein_ring_angle(d)
+    with pytest.raises(ValueError, match="is not a valid camera radius"):
+        jl.einstein_ring_angle(0.5)
+    f = _ring_angle
+    with pytest.raises(Exception, match=r"distance is below 1.7603089815759632 R_S"):
+        jax.block_until_ready(f(jnp.asarray(1.7)))
+    # The bound is where the ring reaches pi/2: Phi(pi/2) = pi there, to 1e-12 rad (the
+    # slope dPhi/dD ~ 1 at the bound: the constant's last digit moves Phi by 2e-16).
+    d_ring = 1.7603089815759632
+    assert abs(float(jl.trace(math.pi / 2, d_ring, accuracy=1e-14).phi) - math.pi) < 1e-12
+    assert float(f(jnp.asarray(d_ring))) == pytest.approx(math.pi / 2, abs=1e-9)
+
+
+def test_einstein_ring_angle_float32_keeps_its_relative_accuracy():
+    # Solving Phi = pi on the table in float32 lost eps pi / 2 in alpha ~ sqrt(2/D):
+    # relative 3.6e-4 at D = 1e8 and 9 % at 1e12. At 1e3 (the table still) the loss is
+    # eps pi / (2 alpha) = 4.1e-6; from 2e3 the weak-field series keeps a few ulps (8:
+    # 1e-6).
+    for d, rtol in ((1e3, 1e-5), (1e8, 1e-6), (1e12, 1e-6)):
+        want = float(_ring_angle(jnp.float64(d)))
+        got = _ring_angle(jnp.float32(d))
+        assert got.dtype == np.float32
+        assert abs(float(got) - want) <= rtol * want, (d, float(got), want)
+    # float64 against the weak-field limit sqrt(2/D) (1 + O(1/sqrt(D)): 1e-6 at 1e12)
+    assert float(_ring_angle(jnp.float64(1e12))) == pytest.approx(math.sqrt(2e-12), rel=2e-6)

@@ -99,9 +99,10 @@ def test_einstein_ring_angle_reference_values():
     # Phi(alpha_E) = pi on the exact trace, to the table's 1e-9 rad.
     a = einstein_ring_angle(20.0)
     assert abs(float(trace(a, 20.0, accuracy=1e-12).phi) - math.pi) < 1e-9
-    # Weak field sqrt(2/D) to its O(1/D) correction, and invisible rings are NaN.
+    # Weak field sqrt(2/D) to its O(1/D) correction, and invisible rings are refused.
     assert float(einstein_ring_angle(1e5)) == pytest.approx(math.sqrt(2e-5), rel=2e-3)
-    assert np.isnan(float(einstein_ring_angle(1.7)))
+    with pytest.raises(ValueError, match="distance=1.7 is below 1.76030898"):
+        einstein_ring_angle(1.7)
 
 
 def test_stored_ring_table_is_the_computed_one():

@@ -4,36 +4,95 @@ values-only knots), and the exact Einstein ring relation $\\alpha_E(D)$ solved o
 import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._raymap import RayMap, tabulate
+from .._weak import _C, _I_HALF, weak_field_terms
 
-_D_MIN = 1.5  # the camera sees a ring in front of it only outside the photon sphere
+# Below this distance (units of R_S) the primary Einstein ring lies beyond pi/2 from the
+# direction of the hole, where no pinhole camera sees it: Phi(pi/2) = pi there (found by
+# bisection on `trace` at accuracy 1e-14; tests/test_checks.py checks both sides).
+D_RING = 1.7603089815759632
+
+# From these distances the ring comes from the weak-field series rather than the table:
+# solving Phi = pi on the table loses eps pi / 2 in alpha to the rounding of Phi ~ pi
+# (relative eps pi / (2 alpha) ~ eps sqrt(D / 2)), the series' truncation is relative
+# 0.39 D^-1.5; they cross near 2e3 in float32 (2e-6) and 4e7 in float64 (1e-12).
+_SERIES_FROM = {"float32": 2e3, "float64": 4e7}
+_SERIES_ITERATIONS = 6  # each gains ~ -log10(u2) >= 1.8 digits at D >= 2e3
 
 
 def einstein_ring_angle(distance: ArrayLike) -> Float[Array, "..."]:
     """Angle of the primary Einstein ring from the direction of the hole, radians.
 
     The local angle $\\alpha_E$ at which a static camera at `distance` (units of R_S,
-    $D > 1.5$, any shape) sees a source exactly behind the hole at infinity:
-    $\\Phi(\\alpha_E) = \\pi$, solved on the ray map of the exact escape angle
-    (`escape_table`; error below $10^{-10}$ rad against `trace`). Works under `jit`,
-    `vmap` and `grad` (the derivative is that of the implicit function). NaN where the
-    ring lies beyond $\\pi/2$ (cameras with $D \\lesssim 1.9$): no pinhole camera sees it.
+    $D_{ring} = 1.7603089815759632 \\le D \\le 10^{30}$, any shape) sees a source
+    exactly behind the hole at infinity: $\\Phi(\\alpha_E) = \\pi$. Solved on the ray
+    map of the exact escape angle (`escape_table`; error below $10^{-10}$ rad against
+    `trace`) up to $D = 4 \\times 10^7$ in float64 ($2 \\times 10^3$ in float32), and
+    beyond from the weak-field series of the escape angle (`weak_field_escape_angle`),
+    written without cancellation against $\\pi$: relative error $\\le 10^{-12}$ in
+    float64 and a few float32 ulps beyond $10^4$ in float32 (the table's solve lost
+    relative $\\epsilon \\sqrt{D/2}$: 9 % at $D = 10^{12}$ in float32).
+
+    Below $D_{ring}$ the ring lies beyond $\\pi/2$, where no pinhole camera sees it:
+    such a distance (and one `trace` refuses) is a `ValueError` naming it, eagerly, and
+    an `eqx.error_if` error at run time under `jit`. Works under `jit`, `vmap` and
+    `grad` (the derivative is that of the implicit function).
 
     **Returns:** $\\alpha_E$ (radians), e.g. 29.8283 deg at $D = 10$;
-    $\\approx\\sqrt{2/D}$ for $D \\gg 1$.
+    $\\approx\\sqrt{2/D}$ for $D \\gg 1$; $\\pi/2$ at $D_{ring}$.
     """
+    from .._trace import _check_distance, _check_dtype, _check_real, _show
+    from .._util import concrete
+
+    distance = _check_real("distance", distance)
+    dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
+    distance = _check_distance(distance, dtype)
+    known = concrete(distance)
+    message = (
+        f"is below {D_RING!r} R_S: the primary Einstein ring then lies beyond pi/2 from "
+        "the hole, where no pinhole camera sees it"
+    )
+    if known is not None:
+        if np.any(known < D_RING):
+            raise ValueError(f"distance={_show(known[known < D_RING].flat[0])} {message}")
+    else:
+        distance = eqx.error_if(distance, jnp.any(distance < D_RING), "distance " + message)
+    d = jnp.asarray(distance, dtype)
+    split = _SERIES_FROM[dtype.name]
 
     def one(d):
-        table = escape_table(d)
-        visible = (d > _D_MIN) & (table.escape_angle(0.5 * jnp.pi) < jnp.pi)
-        return jnp.where(visible, table.solve(jnp.pi), jnp.nan)
+        far = d >= split
+        # Each branch at a distance it handles (the other one's value is discarded).
+        table = escape_table(jnp.where(far, 10.0, d))
+        near = jnp.minimum(table.solve(jnp.pi), 0.5 * jnp.pi)
+        return jnp.where(far, _ring_series(jnp.where(far, d, split)), near)
 
-    d = jnp.asarray(distance, jnp.result_type(float, distance))
     return jnp.vectorize(one)(d)
+
+
+def _ring_series(d):
+    """The primary ring angle (radians) of a far camera at `d` (units of R_S) from the
+    weak-field series (`_weak`): with $\\sin t_0 = u_0/u_2$, $\\Phi = \\pi$ reads
+    $t_0 = S = \\sum_{n \\ge 1} c_n u_2^n [2 I_n(\\pi/2) - I_n(t_0)]$, every term
+    positive (no cancellation against $\\pi$); iterated as $t_0 \\leftarrow
+    \\sqrt{t_0 S}$ ($t_0 S \\approx 2 u_0$ barely depends on $t_0$), from
+    $t_0 = \\sqrt{2 u_0}$. Then $\\sin\\alpha = \\sin t_0 \\sqrt{(1 - u_0)/(1 - u_2)}$."""
+    u0 = 1.0 / d
+    t = jnp.sqrt(2.0 * u0)
+    for _ in range(_SERIES_ITERATIONS):
+        s = jnp.sin(t)
+        u2 = u0 / s
+        _, terms = weak_field_terms(s, jnp.cos(t))
+        total = sum(_C[n] * u2**n * (2.0 * _I_HALF[n] - terms[n]) for n in (1, 2, 3))
+        t = jnp.sqrt(t * total)
+    s = jnp.sin(t)
+    return jnp.arcsin(s * jnp.sqrt((1.0 - u0) / (1.0 - u0 / s)))
 
 
 def escape_table(distance: ArrayLike, *, knots: int = 4096) -> RayMap:
