@@ -11,7 +11,10 @@ concrete) its values:
   distance); the weak-field series where every ray in view has its periapsis far out
   and the series' rigorous truncation bound is below the accuracy (and the view is
   small enough that the table's build is not amortised); or `"trace"`, the exact
-  closed form per ray, when the scene forces it.
+  closed form per ray, when the scene forces it. A scene that forces `"weak_field"`
+  keeps its accuracy: where the series' bound over the view is not below it (or cannot
+  be computed, the camera's values traced), `plan` raises a `ValueError` with the bound
+  and what to do instead.
 - **redshift**, **disk**: present when the scene names them; the disk stage follows
   only the rays that can reach the disk, gathered into a batch whose size is the
   largest count over the blocks (rounded up to one of 16 steps).
@@ -199,6 +202,31 @@ def _staging() -> bool:
     return isinstance(jax.device_put(0.0), jax.core.Tracer)
 
 
+def _forced_weak_bound(scene, base: Plan, concrete: bool) -> float:
+    """The weak-field series' largest bound over a scene that forces it (radians), or a
+    ValueError when it is not below the scene's accuracy: forcing the series chooses
+    the method, not a looser accuracy (the table and the exact trace meet it anyway)."""
+    if not concrete:
+        raise ValueError(
+            "method='weak_field' needs the camera's values to bound the series' error, and "
+            "they are traced here: use method='auto' or 'table' under jit/grad/vmap"
+        )
+    cam = scene.camera
+    bound = max(float(_weak_bound(one, base.kernel_key(), cam.height)) for _, one in _frames(scene))
+    if not bound < scene.accuracy:
+        what = (
+            f"error bound {bound:.2e} rad" if math.isfinite(bound)
+            else "error bound inf (rays pass near the hole, where it does not apply)"
+        )  # fmt: skip
+        raise ValueError(
+            f"method='weak_field' is forced, but the weak-field series' {what} over this "
+            f"view is not below the accuracy {scene.accuracy:.1e} rad: use method='auto' or "
+            "'table' (they meet the accuracy), or an accuracy above the bound to accept "
+            "the series"
+        )
+    return bound
+
+
 def _plan(scene, chunk_samples):
     cam = scene.camera
     reasons = []
@@ -269,6 +297,13 @@ def _plan(scene, chunk_samples):
     weak_bound = None
     if gauss:
         geometry = "table"
+    elif scene.method == "weak_field":
+        geometry = "weak_field"
+        weak_bound = _forced_weak_bound(scene, base, concrete)
+        reasons.append(
+            f"method='weak_field' forced by the scene: series bound {weak_bound:.2e} rad < "
+            f"accuracy {scene.accuracy:.1e}"
+        )
     elif scene.method != "auto":
         geometry = scene.method
         reasons.append(f"method={scene.method!r} forced by the scene")

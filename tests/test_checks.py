@@ -311,3 +311,18 @@ def test_einstein_ring_angle_float32_keeps_its_relative_accuracy():
         assert abs(float(got) - want) <= rtol * want, (d, float(got), want)
     # float64 against the weak-field limit sqrt(2/D) (1 + O(1/sqrt(D)): 1e-6 at 1e12)
     assert float(_ring_angle(jnp.float64(1e12))) == pytest.approx(math.sqrt(2e-12), rel=2e-6)
+
+
+def test_a_forced_weak_field_keeps_the_accuracy():
+    # method="weak_field" ignored accuracy: 4.4e-6 rad at D = 50 against 1e-8 asked.
+    sky = jl.GaussianStar(math.radians(2.0), 1.0)
+    cam = jl.Camera(50.0, math.radians(60.0), 16, 12)
+    scene = jl.Scene(cam, sky, method="weak_field", accuracy=1e-8)
+    with pytest.raises(ValueError, match=r"method='weak_field' is forced, but the weak-field "
+                       r"series' error bound (\d\.\d\de-0\d rad|inf).* not below the accuracy "
+                       r"1\.0e-08 rad: use method='auto' or 'table'"):  # fmt: skip
+        jl.plan(scene)
+    # Far and narrow, the bound is below a looser accuracy: the series is used.
+    far = scene.replace(camera=jl.Camera(1e4, math.radians(5.0), 16, 12), accuracy=1e-4)
+    p = jl.plan(far)
+    assert p.geometry == "weak_field" and p.weak_bound < 1e-4
