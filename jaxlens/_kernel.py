@@ -47,7 +47,7 @@ from ._sky import AbstractCompactSky, SkySum
 from ._sky._base import rgb_shift_power
 from ._trace import trace
 from ._util import fusion_barrier
-from ._weak import weak_field_escape_angle
+from ._weak import weak_field_series
 
 # The camera's orientation and position angles, as the kernel uses them.
 _CAMERA_ANGLES = ("yaw", "pitch", "roll", "azimuth", "elevation")
@@ -193,7 +193,7 @@ def _escape_angle(scene, plan, ray_map, alpha):
     if plan.geometry == "table":
         return ray_map.escape_angle(alpha)
     if plan.geometry == "weak_field":
-        return weak_field_escape_angle(alpha, d)[0]
+        return weak_field_series(alpha, d)[0]  # the scene's values are checked
     return trace(alpha, d, accuracy=scene.accuracy, method="exact").phi
 
 

@@ -25,7 +25,7 @@ from . import _kernel
 from ._camera import Camera
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
 from ._programs import Stored
-from ._raymap import RayMap, placeholder
+from ._raymap import RayMap, placeholder, tabulate
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
@@ -369,7 +369,8 @@ def _render_array(scene, p: Plan, ray_map):
     # The scene's values are checked already: on the host (eager) or by `checked`.
     cam = scene.camera
     if p.geometry == "table" and ray_map is None:
-        ray_map = RayMap.build(cam.distance, accuracy=scene.accuracy, **TABLE_SETTINGS)
+        # The distance is checked (`checked`/`verify`): no second error callback here.
+        ray_map = tabulate(cam.distance, accuracy=scene.accuracy, **TABLE_SETTINGS)
     if ray_map is not None:
         ray_map = ray_map.astype(cam.dtype)
     rows = cam.height // 2 if p.pair else cam.height
