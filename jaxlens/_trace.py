@@ -374,6 +374,9 @@ def method_for(name: str, accuracy: float) -> AbstractMethod:
 # finite and accurate up to it (tests/test_checks.py); float32 fails near 1e37, where
 # 1/D leaves its normal range, float64 near 1e300. 1e30 R_S is 3e36 m for a solar mass.
 MAX_DISTANCE = 1e30
+# The bound as compared: 1e30 as float32 rounds it (1.0000000150e30), in every dtype, so
+# that a float32 camera at 1e30 keeps working once its distance is widened to float64.
+_MAX_COMPARED = float(np.float32(MAX_DISTANCE))
 
 # The dtypes rays are traced in (float16 and bfloat16 overflow in the closed forms).
 FLOAT_DTYPES = ("float32", "float64")
@@ -436,8 +439,7 @@ def _check_distance(distance, dtype=None):
         d = None
     if d is not None:
         _check_real("distance", d)
-        # The bound as the given dtype rounds it (float32(1e30) is 1.0000000150e30).
-        top = float(np.asarray(MAX_DISTANCE, d.dtype if d.dtype.kind == "f" else np.float64))
+        top = _MAX_COMPARED
         d = d.astype(np.float64)
         bad = ~np.isfinite(d) | ~(d > 1.0)
         if np.any(bad):
@@ -471,7 +473,7 @@ DISTANCE_MESSAGE = (
 
 def _distance_bad(distance):
     """Where a traced `distance` is out of range (the predicate of `_check_distance`)."""
-    return ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > MAX_DISTANCE)
+    return ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > _MAX_COMPARED)
 
 
 _ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"

@@ -226,6 +226,11 @@ def test_camera_takes_the_largest_values():
     cam = jl.Camera(1e30, 1.0, (1 << 20) - 1, 1, supersample=64, dtype=np.float32)
     assert float(cam.distance) == pytest.approx(1e30, rel=1e-7) and cam.width == 1048575
     assert jl.Camera(np.float32(1e30), np.float32(1.0), 16, 12).dtype == np.float32
+    # A float32 camera's 1e30 (1.0000000150e30) widened to float64, as the renderer
+    # builds its table, is still in range.
+    wide = float(np.float32(1e30))
+    assert float(jl.RayMap.build(wide, knots=64).alpha_sh) == pytest.approx(jl.B_CRIT / wide)
+    assert float(_build_jit(jnp.asarray(wide))) == pytest.approx(jl.B_CRIT / wide)
 
 
 def test_weak_field_series_refuses_a_camera_inside_the_horizon():
