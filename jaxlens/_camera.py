@@ -355,6 +355,17 @@ def _static(c: Camera) -> tuple:
 
 
 def _sweep(camera: Camera, name: str, values) -> Camera:
+    from ._trace import _check_distance, _check_real
+
+    known = _concrete(_check_real(name, values))
+    if known is not None:  # before the cast: 1e300 is inf in float32
+        if name == "distance":
+            _check_distance(known, camera.dtype)
+        elif not np.all(np.isfinite(known)) or np.any(np.abs(known) > np.finfo(camera.dtype).max):
+            bad = known[~(np.abs(known) <= np.finfo(camera.dtype).max)]
+            raise ValueError(
+                f"{name}={_cut(bad.flat[0])} must be finite in {camera.dtype.name} (radians)"
+            )
     values = jnp.asarray(values, camera.dtype)
     if values.ndim != 1 or values.shape[0] < 1:
         raise ValueError(

@@ -331,3 +331,15 @@ def test_a_forced_weak_field_keeps_the_accuracy():
     far = scene.replace(camera=jl.Camera(1e4, math.radians(5.0), 16, 12), accuracy=1e-4)
     p = jl.plan(far)
     assert p.geometry == "weak_field" and p.weak_bound < 1e-4
+
+
+def test_camera_sweeps_refuse_values_before_their_cast():
+    # approach/pan from 1e300 gave distance=inf / yaw=inf (float32) and a RuntimeWarning.
+    cam = jl.Camera(20.0, 1.0, 8, 6, dtype=np.float32)
+    with pytest.raises(ValueError, match=r"distance=1e\+300 is beyond the largest supported"):
+        jl.approach(cam, [10.0, 1e300])
+    with pytest.raises(ValueError, match=r"yaw=1e\+300 must be finite in float32"):
+        jl.pan(cam, [0.0, 1e300])
+    with pytest.raises(TypeError, match=r"azimuth=.* must be real numbers"):
+        jl.orbit(cam, [0.0, 1j])
+    assert jl.approach(cam, [10.0, 1e30]).batch_shape == (2,)
