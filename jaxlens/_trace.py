@@ -477,6 +477,9 @@ def _distance_bad(distance):
 
 
 _ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"
+# The top of that range as checked: pi rounded to float32 (8.7e-8 above pi), so that a
+# float32 pi, widened to float64, is still straight away.
+_ALPHA_TOP = float(np.float32(np.pi))
 
 
 def _bad_alpha(alpha):
@@ -485,16 +488,14 @@ def _bad_alpha(alpha):
     `eqx.error_if`, so that the rays do not wait for the check. `None` when checked."""
     a = concrete(alpha)
     if a is not None:
-        top = np.asarray(np.pi, a.dtype) if a.dtype.kind == "f" else np.pi
-        bad = ~((a >= 0) & (a <= top))
+        bad = ~((a >= 0) & (a <= _ALPHA_TOP))
         if np.any(bad):
             raise ValueError(
                 f"alpha={_show(a[bad].flat[0])} is not a valid local angle: it must be "
                 + _ALPHA_RANGE
             )
         return None
-    top = jnp.asarray(np.pi, jnp.result_type(float, alpha))
-    return jnp.any(~((alpha >= 0) & (alpha <= top)))
+    return jnp.any(~((alpha >= 0) & (alpha <= _ALPHA_TOP)))
 
 
 def trace(
