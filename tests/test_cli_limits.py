@@ -374,22 +374,7 @@ def _scene_keys():
                            {"effects": {s: {"type": k, n: v}}}), f"{kind} {name}"  # fmt: skip
 
 
-# Refused by the sky's own code, in words that do not name the key: random stars'
-# brightness 0 (an OverflowError from numpy's log-uniform draw), a plane whose size and
-# distance make it 180 degrees wide ("width=180.0 degrees must be in (0, 180)").
-KNOWN = {("stars", "brightness", 0), ("stars", "brightness", -1),
-         ("plane", "size", 10**30), ("plane", "plane_distance", 1e-300)}  # fmt: skip
-
-
-def _case(make, name, value):
-    sky = make(value).get("sky", [{}])[0].get("type")
-    if (sky, name, value) in KNOWN:
-        return pytest.param(make, name, value, marks=pytest.mark.xfail(
-            reason="the sky's build refuses it without naming the key"))  # fmt: skip
-    return (make, name, value)
-
-
-SCENE_KEYS = [_case(make, name, v) for make, name in _scene_keys() for v in EDGE_VALUES]
+SCENE_KEYS = [(make, name, v) for make, name in _scene_keys() for v in EDGE_VALUES]
 
 
 @pytest.mark.parametrize("make,name,value", SCENE_KEYS)

@@ -105,6 +105,12 @@ def _check(where: str, fields: dict) -> None:
         raise ValueError(f"{where}: give width_deg or size and plane_distance, not both")
     if has_plane and not ("size" in fields and "plane_distance" in fields):
         raise ValueError(f"{where}: size and plane_distance go together")
+    if has_plane:
+        size, dist = fields["size"], fields["plane_distance"]
+        if not math.degrees(2.0 * math.atan(0.5 * size / dist)) < 180.0:
+            raise ValueError(f"{where}: size = {_schema.describe(size)} at plane_distance = "
+                             f"{_schema.describe(dist)} is a picture 180 degrees wide: size / "
+                             "plane_distance must be finite (units of R_S)")  # fmt: skip
 
 
 @_schema.register(

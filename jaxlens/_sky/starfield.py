@@ -136,6 +136,13 @@ def unit_rows(d):
 
 def _check(where: str, fields: dict) -> None:
     check_star_lists(where, fields, ("brightness",))
+    b = fields.get("brightness")
+    if "lon_deg" not in fields and b is not None:
+        low = min(np.atleast_1d(b))
+        if not low > 0.0:  # random stars' brightness is log-uniform in its range
+            raise ValueError(f"{where}.brightness = {_schema.describe(b)}: random stars "
+                             "(count) need brightness values > 0 (the least and the largest "
+                             "give the log-uniform range)")  # fmt: skip
 
 
 @_schema.register(
