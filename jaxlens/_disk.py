@@ -133,7 +133,7 @@ _DEG = "a number in [0, 180] (degrees)"
     "r_out": Key("float", 12.0, greater(1.5), "a number > r_in (units of R_S)"),
     "inclination_deg": Key("float", 80.0, lambda v: 0.0 <= v <= 180.0, _DEG),
     "position_angle_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
-    "temperature": Key("float", 8000.0, greater(0.0), "a number > 0 (K)"),
+    "temperature": Key("float", 8000.0, lambda v: v >= 1.0, "a number >= 1 (K)"),
     "brightness": Key("float", 1.0, lambda v: v >= 0.0, "a number >= 0"),
     "crossings": Key("int", 3, in_range(0, 65), "a whole number from 1 to 64"),
     "steps": Key("int", 48, in_range(1, 100_001), "a whole number from 2 to 100000"),

@@ -59,7 +59,7 @@ from pathlib import Path
 import equinox as eqx
 
 from . import _schema
-from ._camera import SAMPLINGS, Camera
+from ._camera import MAX_SIDE, MAX_SUPERSAMPLE, SAMPLINGS, Camera
 from ._disk import Disk
 from ._effects import AbstractMotion, Redshift
 from ._schema import (
@@ -83,9 +83,9 @@ TOP_KEYS = {
 CAMERA_KEYS = {
     "distance": Key("float", 20.0, greater(1.0), "a finite number > 1 (units of R_S)"),
     "fov_deg": Key("float", 60.0, in_range(0.0, 180.0), "a number in (0, 180) (degrees)"),
-    "width": Key("int", 960, in_range(0, 1 << 20), "a whole number from 1 to 1048575 (pixels)"),
-    "height": Key("int", 540, in_range(0, 1 << 20), "a whole number from 1 to 1048575 (pixels)"),
-    "supersample": Key("int", 2, in_range(0, 65), "a whole number from 1 to 64"),
+    "width": Key("int", 960, in_range(0, MAX_SIDE + 1), "a whole number (pixels)"),
+    "height": Key("int", 540, in_range(0, MAX_SIDE + 1), "a whole number (pixels)"),
+    "supersample": Key("int", 2, in_range(0, MAX_SUPERSAMPLE + 1), "a whole number"),
     "sampling": Key("str", "uniform", lambda v: v in SAMPLINGS, " | ".join(SAMPLINGS)),
     "yaw_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
     "pitch_deg": Key("float", 0.0, anything, "a finite number (degrees)"),
