@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import run
 from PIL import Image
 
 import jaxlens as jl
@@ -16,12 +17,6 @@ from jaxlens import cli, read_image, write_image
 @pytest.fixture(autouse=True)
 def _no_persistent_cache(monkeypatch):
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")
-
-
-def run(args, capsys):
-    code = cli.main(args)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_options_in_degrees_are_named_so_and_the_old_names_stay(tmp_path, capsys):

@@ -9,6 +9,7 @@ import sys
 import textwrap
 
 import numpy as np
+from helpers import children as _children
 
 WORKER = textwrap.dedent(
     """
@@ -78,26 +79,6 @@ def _command_env(cache) -> dict:
     # processes load the programs the first run compiled (the same programs: the
     # comparison is of how the work is split, not of two compiles).
     return dict(_env(2), JAXLENS_CACHE_DIR=str(cache))
-
-
-def _children(pid: int) -> dict[int, int]:
-    """`{process index: pid}` of the processes `jaxlens ... --processes N` started."""
-    out = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            if ppid != pid:
-                continue
-            with open(f"/proc/{entry}/environ", "rb") as f:
-                env = dict(v.split(b"=", 1) for v in f.read().split(b"\0") if b"=" in v)
-        except (OSError, ValueError, IndexError):
-            continue
-        if b"JAXLENS_PROCESS_ID" in env:
-            out[int(env[b"JAXLENS_PROCESS_ID"])] = int(entry)
-    return out
 
 
 def _files(folder):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run
 
 import jaxlens as jl
 from jaxlens import cli
@@ -22,12 +23,6 @@ from jaxlens import cli
 @pytest.fixture(autouse=True)
 def _no_persistent_cache(monkeypatch):
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")
-
-
-def run(args, capsys):
-    code = cli.main(args)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture

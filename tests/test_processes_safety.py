@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from helpers import children as _children
 
 from jaxlens import cli
 
@@ -24,26 +25,6 @@ def _env(cache) -> dict:
 def _start(args, env):
     return subprocess.Popen([sys.executable, "-m", "jaxlens", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
-
-
-def _children(pid: int) -> dict[int, int]:
-    """`{process index: pid}` of the processes `jaxlens ... --processes N` started."""
-    out = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-            if ppid != pid:
-                continue
-            with open(f"/proc/{entry}/environ", "rb") as f:
-                env = dict(v.split(b"=", 1) for v in f.read().split(b"\0") if b"=" in v)
-        except (OSError, ValueError, IndexError):
-            continue
-        if b"JAXLENS_PROCESS_ID" in env:
-            out[int(env[b"JAXLENS_PROCESS_ID"])] = int(entry)
-    return out
 
 
 def _alive(pid: int) -> bool:
