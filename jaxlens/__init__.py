@@ -25,7 +25,7 @@ _MODULES = {
         "strong_field_deflection",
         "weak_field_deflection",
     ),
-    "_programs": ("keep_programs",),
+    "_compile": ("keep_programs",),
     "_trace": (
         "RK4",
         "AbstractIntegrator",

@@ -23,7 +23,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
-from ._programs import Stored
+from ._compile import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
 from ._util import ONCE_PROGRAM, filter_jit_cpu, fusion_barrier, is_concrete, tracing
 

@@ -24,7 +24,7 @@ from jaxtyping import Array, Float
 from . import _kernel
 from ._camera import Camera
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
-from ._programs import Stored
+from ._compile import Stored
 from ._raymap import RayMap, placeholder, tabulate
 from ._scene import Scene
 from ._sky import AbstractSky

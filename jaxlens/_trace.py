@@ -15,7 +15,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from . import _exact, _integrators
 from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
-from ._programs import Stored
+from ._compile import Stored
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
 from ._util import (
     OLDER_CPU_FUSION,

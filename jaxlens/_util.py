@@ -187,7 +187,7 @@ class filter_jit_cpu:
     programs compile with XLA `options` on the CPU backend (`jax.jit`'s
     `compiler_options`; other backends compile as usual), e.g. `OLDER_CPU_FUSION`.
     `options()` gives the options of the current backend, for another jit of the same
-    program (`_programs.Stored`).
+    program (`_compile.Stored`).
     """
 
     def __init__(self, fn, options: dict):

@@ -230,7 +230,7 @@ def main(argv=None) -> int:
             # Compiled programs kept between runs (`keep_programs`: the folder is
             # $JAXLENS_CACHE_DIR, else $JAX_COMPILATION_CACHE_DIR, else
             # ~/.cache/jaxlens/xla; empty: none kept): later runs start at once.
-            from ._programs import keep_programs
+            from ._compile import keep_programs
 
             keep_programs()
             # The objects alive now (JAX's modules, most of them) are left out of the

@@ -671,12 +671,12 @@ def test_bad_images(tmp_path):
 
 
 def test_cli(tmp_path, capsys, monkeypatch):
-    from jaxlens import _programs, cli
+    from jaxlens import _compile, cli
 
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")  # no persistent cache from a test
     # ... but the fit's programs run as the CLI keeps them (their executables).
     kept = tmp_path / "programs"
-    monkeypatch.setattr(_programs, "_FOLDER", kept)
+    monkeypatch.setattr(_compile, "_FOLDER", kept)
     path = tmp_path / "ring.png"
     write_png(path, noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=16), 16)
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--mass", "10", "--json"]) == 0

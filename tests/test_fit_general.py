@@ -49,12 +49,12 @@ def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys, monkeypatch)
     img[5:15, 60:75] = np.nan  # bad pixels, as a FITS or EXR file carries them
     path = tmp_path / "arcs.exr"
     jl.write_image(path, np.repeat(img[..., None], 3, axis=-1).astype(np.float32))
-    from jaxlens import _programs
+    from jaxlens import _compile
     from jaxlens.cli import main
 
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")  # no persistent cache from a test
     kept = tmp_path / "programs"  # ... but the fit's programs kept, as the CLI does
-    monkeypatch.setattr(_programs, "_FOLDER", kept)
+    monkeypatch.setattr(_compile, "_FOLDER", kept)
     assert main(["fit", str(path), "--psf-sigma-px", "1.5", "--json"]) == 0
     # The solve, the start search, the scan's loss and the arcs' rays: all kept.
     assert len(list(kept.glob("*.executable"))) == 4 and not list(kept.glob("*.refused"))

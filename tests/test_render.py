@@ -251,7 +251,7 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
     # Where the CLI keeps its cache, the render's programs are kept compiled (their
     # executables): a later process calls them without tracing the renderer. A fresh
     # process is played by forgetting the programs and the ray maps held in memory.
-    from jaxlens import _programs, _raymap, _render
+    from jaxlens import _compile, _raymap, _render
 
     stored = (_render._block_plain, _raymap._tabulated_compiled)
 
@@ -263,7 +263,7 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
     scene = jl.Scene(Camera(20.0, math.radians(50.0), 18, 12, supersample=2), SKY)
     direct = render(scene)
     _raymap._tabulated_recent.cache_clear()
-    _programs.use_folder(tmp_path)
+    _compile.use_folder(tmp_path)
     try:
         with jax_events("/jax/core/compile/jaxpr_trace_duration") as traced:
             first = render(scene)
@@ -279,7 +279,7 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
         repaired = render(scene)
         assert kept[0].read_bytes() != b"not a program"
     finally:
-        _programs.use_folder(None)
+        _compile.use_folder(None)
     for image in (first, again, repaired):
         np.testing.assert_array_equal(image, direct)
 

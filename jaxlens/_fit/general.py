@@ -15,7 +15,7 @@ import optimistix as optx
 from .. import _kernel, _plan
 from .._camera import Camera
 from .._exact import _shadow_angle
-from .._programs import Stored
+from .._compile import Stored
 from .._scene import Scene
 from .._util import (
     FIT_PROGRAM,

@@ -10,9 +10,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _programs
+from .. import _compile
 from .._area import rect_in_disc
-from .._programs import Stored
+from .._compile import Stored
 from .._util import SIDE_PROGRAM, filter_jit_cpu, to_device
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
 from .spd import solve_spd
@@ -421,7 +421,7 @@ def _rows(cands):
 def preload_search(img, prof: _Profile, scale) -> None:
     """Load the start search's program where the command line keeps programs, on a
     thread, while the caller goes on (`ring_start` then finds it loaded)."""
-    if not _programs.keeping():
+    if not _compile.keeping():
         return
     halves, args0, setup0, _ = _search_inputs(img, prof, None, scale)
     cands = _rows(_ring_candidates(prof, img.shape[1], None))

@@ -1,4 +1,4 @@
-"""The executables the CLI keeps between processes (`jaxlens._programs.Stored`): what
+"""The executables the CLI keeps between processes (`jaxlens._compile.Stored`): what
 goes into their key, and a kept program that calls JAX's LAPACK kernels loaded by a
 fresh process (which has not set them up: calling it unprepared ends the process)."""
 
@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from jaxlens import _programs
+from jaxlens import _compile
 
 # Keeps (first run) or loads (second run) a program with a QR decomposition in the
 # folder given, and prints a value of its result and whether it was traced.
@@ -17,7 +17,7 @@ import sys
 
 import pytest
 import equinox as eqx, jax, jax.numpy as jnp, numpy as np
-from jaxlens import _programs
+from jaxlens import _compile
 
 traced = []
 
@@ -35,9 +35,9 @@ if "xla" in sys.argv:  # XLA's persistent cache in the same folder, as the CLI s
 if "written" in sys.argv:  # written to XLA's cache too, as earlier versions did
     import contextlib
 
-    _programs._not_written_to_xla_cache = contextlib.nullcontext
-_programs.use_folder(sys.argv[1])
-f = _programs.Stored(qr_sum, lambda *_: jax.tree.structure(0))
+    _compile._not_written_to_xla_cache = contextlib.nullcontext
+_compile.use_folder(sys.argv[1])
+f = _compile.Stored(qr_sum, lambda *_: jax.tree.structure(0))
 a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
 if "preload" in sys.argv:  # loaded on a thread before the call: the call finds it
     f.preload(a).join()
@@ -75,8 +75,8 @@ def test_a_kept_program_with_lapack_calls_runs_in_a_fresh_process(tmp_path):
 
 def test_the_key_holds_xla_flags_and_jax_settings_from_the_environment(monkeypatch):
     def digest():
-        _programs._code_digest.cache_clear()
-        return _programs._code_digest()
+        _compile._code_digest.cache_clear()
+        return _compile._code_digest()
 
     try:
         monkeypatch.delenv("XLA_FLAGS", raising=False)
@@ -87,26 +87,26 @@ def test_the_key_holds_xla_flags_and_jax_settings_from_the_environment(monkeypat
         monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(monkeypatch))
         assert plain != flags == digest()
     finally:
-        _programs._code_digest.cache_clear()
+        _compile._code_digest.cache_clear()
 
 
 def test_the_key_holds_the_versions_of_the_traced_libraries(monkeypatch):
     # A new optimistix changes the fit's solver: its kept program must not be loaded.
     def digest():
-        _programs._code_digest.cache_clear()
-        return _programs._code_digest()
+        _compile._code_digest.cache_clear()
+        return _compile._code_digest()
 
     try:
         installed = digest()
-        real = _programs._version
+        real = _compile._version
 
         def older_optimistix(name):
             return "0.0.0" if name == "optimistix" else real(name)
 
-        monkeypatch.setattr(_programs, "_version", older_optimistix)
+        monkeypatch.setattr(_compile, "_version", older_optimistix)
         assert digest() != installed
     finally:
-        _programs._code_digest.cache_clear()
+        _compile._code_digest.cache_clear()
 
 
 def test_a_program_xla_cached_is_kept_whole(tmp_path):
@@ -174,11 +174,11 @@ def test_keep_programs_lets_the_next_process_load_trace(tmp_path, rays, programs
 def test_keep_programs_with_an_empty_folder_keeps_nothing(monkeypatch):
     import jax
 
-    before = (_programs._FOLDER, jax.config.jax_compilation_cache_dir)
-    assert _programs.keep_programs("") is None
+    before = (_compile._FOLDER, jax.config.jax_compilation_cache_dir)
+    assert _compile.keep_programs("") is None
     monkeypatch.setenv("JAXLENS_CACHE_DIR", "")
-    assert _programs.keep_programs() is None
-    assert (_programs._FOLDER, jax.config.jax_compilation_cache_dir) == before
+    assert _compile.keep_programs() is None
+    assert (_compile._FOLDER, jax.config.jax_compilation_cache_dir) == before
 
 
 def test_keep_programs_takes_the_folder_jax_was_given(tmp_path):
@@ -219,17 +219,17 @@ def test_is_kept_says_whether_a_call_would_load_its_program(tmp_path):
 
     from jaxlens._util import filter_jit_cpu
 
-    f = _programs.Stored(filter_jit_cpu(lambda x: 2.0 * x, options={}),
+    f = _compile.Stored(filter_jit_cpu(lambda x: 2.0 * x, options={}),
                          lambda *_: jax.tree.structure(0))  # fmt: skip
     x = jnp.arange(3.0)
     assert not f.is_kept(x)  # no folder: nothing is kept
-    _programs.use_folder(tmp_path)
+    _compile.use_folder(tmp_path)
     try:
         assert not f.is_kept(x)
         f(x)  # compiled and kept
         assert f.is_kept(x)
         assert not f.is_kept(jnp.arange(4.0))  # another shape
-        fresh = _programs.Stored(f._fn, f._structure)  # as a new process sees it: the file
+        fresh = _compile.Stored(f._fn, f._structure)  # as a new process sees it: the file
         assert fresh.is_kept(x)
     finally:
-        _programs.use_folder(None)
+        _compile.use_folder(None)
