@@ -136,12 +136,10 @@ _MODULES = {
     "_scene": (
         "Scene",
         "load_scene",
-    ),
-    "_schema": (
-        "SceneKey",
         "scene_table_keys",
         "scene_table_types",
     ),
+    "_schema": ("SceneKey",),
     "_shard": (
         "ray_mesh",
         "shard_map_rays",

@@ -8,9 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _io, _multi, _schema
+from . import _io, _multi, _schema, cli
 from ._cli_render import add_scene_options, pixel_dtype, scene_dict
 from ._schema import ANIMATION_PATHS, ANIMATION_RANGES
+
+# `_scene` (and with it JAX) is imported in the functions that run the command: at
+# module level it would load JAX for `jaxlens --help`, which builds this parser.
 
 FRAME_FORMATS = ("png", "jpg", "exr", "hdr")
 
@@ -74,8 +77,6 @@ def _check_path(args, path: str, start: float, stop: float) -> None:
 
 
 def run(args):
-    from . import cli
-
     cli.enable_x64()
     index, count = _multi.join() if args.distributed else (0, 1)
 

@@ -3,6 +3,8 @@
 import sys
 from pathlib import Path
 
+from ._io import remove_temporary, stale_temporaries
+
 
 def register(sub):
     p = sub.add_parser(
@@ -22,8 +24,6 @@ def register(sub):
 
 
 def _run(args) -> int:
-    from ._io import remove_temporary, stale_temporaries
-
     for folder in args.folders:
         if not Path(folder).is_dir():
             raise ValueError(f"{folder!r} is not a folder")

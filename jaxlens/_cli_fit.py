@@ -6,8 +6,13 @@ import json
 import math
 import sys
 
-from . import _multi, _schema
+from . import _multi, _schema, cli
+from ._messages import cut
 from ._schema import MAGNITUDE_MAX
+
+# The modules of the fit, the scene and the skies (and with them JAX) are imported in
+# the functions that run the command: at module level they would load JAX for
+# `jaxlens --help`, which builds this parser.
 
 # Numbers of the command line that are not scene keys (a noise sigma, a gain, a mass, a
 # distance in metres) lie in [1e-30, 1e30]: their squares and inverses stay within
@@ -27,7 +32,7 @@ def _noise(text):
         return _number_in("--noise", text, SMALLEST, LARGEST, "a noise sigma in pixel values")
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"{_schema.cut(repr(text))} is not gaussian, poisson or a noise sigma from "
+            f"{cut(repr(text))} is not gaussian, poisson or a noise sigma from "
             f"{SMALLEST:g} to {LARGEST:g} (pixel values)"
         ) from None
 
@@ -36,7 +41,7 @@ def _number(name, text):
     try:
         return float(text)
     except ValueError:
-        raise ValueError(f"{name} {_schema.cut(repr(text))} is not a number") from None
+        raise ValueError(f"{name} {cut(repr(text))} is not a number") from None
 
 
 def _number_in(name, text, lo, hi, unit, *, open_=False):
@@ -45,7 +50,7 @@ def _number_in(name, text, lo, hi, unit, *, open_=False):
     value = _number(name, text)
     if not (math.isfinite(value) and (lo < value < hi if open_ else lo <= value <= hi)):
         valid = f"in ({lo:g}, {hi:g})" if open_ else f"from {lo:g} to {hi:g}"
-        raise ValueError(f"{name} {_schema.cut(repr(text))} is not valid: expected a number "
+        raise ValueError(f"{name} {cut(repr(text))} is not valid: expected a number "
                          f"{valid} ({unit})")  # fmt: skip
     return value
 
@@ -61,7 +66,7 @@ def _held(item: str) -> tuple[str, float]:
     FOV in (0, 180) degrees, ...) and at most `MAGNITUDE_MAX` in magnitude."""
     from ._fit.params import is_angle, parameter
 
-    shown = _schema.cut(repr(item))
+    shown = cut(repr(item))
     name, sep, text = item.partition("=")
     name, text = name.strip(), text.strip()
     if not sep:
@@ -90,7 +95,7 @@ def _held(item: str) -> tuple[str, float]:
             valid = f"a number > {lo:.12g}" if math.isfinite(lo) else "a finite number"
         unit = "degrees" if deg else p.unit
         big = f", at most {MAGNITUDE_MAX:g} in magnitude" if inside else ""
-        raise ValueError(f"--fix {name}={_schema.cut(text)} is not valid: expected {valid}"
+        raise ValueError(f"--fix {name}={cut(text)} is not valid: expected {valid}"
                          f"{f' ({unit})' if unit else ''}{big}")  # fmt: skip
     return base, math.radians(value) if deg else value
 
@@ -166,20 +171,20 @@ def register(sub):
 
 def run(args):
     index, count = _multi.join() if args.distributed else (0, 1)
+    from ._camera import Camera
+    from ._fit import DEFAULT_FREE, fit as fit_scene
+    from ._scene import Scene, scene_table_keys
+    from ._sky import GaussianStar, Uniform
+
     sigma = None
     if args.star_sigma_deg is not None:
-        key = _schema.keys("sky", "star")["sigma_deg"]
+        key = scene_table_keys("sky", "star")["sigma_deg"]
         value = _number("--star-sigma-deg", args.star_sigma_deg)
         sigma = math.radians(_schema.coerce("", "--star-sigma-deg", value, key, equals=" "))
     mass = _positive("--mass-msun", "solar masses")(args.mass) if args.mass is not None else None
     dist_m = None
     if args.distance_m is not None:
         dist_m = _positive("--distance-m", "metres")(args.distance_m)
-
-    from ._camera import Camera
-    from ._fit import DEFAULT_FREE, fit as fit_scene
-    from ._scene import Scene
-    from ._sky import GaussianStar, Uniform
 
     psf, free = None, list(DEFAULT_FREE)
     if args.psf_sigma_px is not None:
@@ -204,8 +209,6 @@ def run(args):
     gain = None
     if args.gain is not None:
         gain = _positive("--gain", "counts a unit of pixel value")(args.gain)
-    from . import cli
-
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
     images = args.images
     several = len(images) > 1

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._messages import shown
+
 FLOAT_FORMATS = {".exr", ".hdr", ".tif", ".tiff"}
 DISPLAY_FORMATS = {".png", ".jpg", ".jpeg"}
 WRITE_FORMATS = FLOAT_FORMATS | DISPLAY_FORMATS
@@ -102,20 +104,14 @@ def check_exposure(exposure) -> float:
     (-EXPOSURE_MAX, EXPOSURE_MAX) = (-100, 100), `TypeError` for a string or complex."""
     valid = f"expected a number of stops in ({-EXPOSURE_MAX:g}, {EXPOSURE_MAX:g})"
     if isinstance(exposure, (str, bytes)) or np.iscomplexobj(exposure):
-        raise TypeError(f"exposure={_shown_value(exposure)} is not valid: {valid}")
+        raise TypeError(f"exposure={shown(exposure)} is not valid: {valid}")
     try:
         x = float(exposure)
     except (TypeError, ValueError):
-        raise TypeError(f"exposure={_shown_value(exposure)} is not valid: {valid}") from None
+        raise TypeError(f"exposure={shown(exposure)} is not valid: {valid}") from None
     if not -EXPOSURE_MAX < x < EXPOSURE_MAX:  # NaN too
-        raise ValueError(f"exposure={_shown_value(exposure)} is not valid: {valid}")
+        raise ValueError(f"exposure={shown(exposure)} is not valid: {valid}")
     return x
-
-
-def _shown_value(value) -> str:
-    """`repr(value)` cut to a readable length."""
-    text = repr(value)
-    return text if len(text) <= 200 else f"{text[:200]}... ({len(text)} characters)"
 
 
 def _check_real(array: np.ndarray, what: str) -> np.ndarray:
@@ -382,7 +378,7 @@ def _write_failure(path, e: OSError) -> OSError:
 
 def _shown(path) -> str:
     """A path as messages show it: quoted, and cut to a readable length."""
-    return _shown_value(str(path))
+    return shown(str(path))
 
 
 @contextlib.contextmanager
@@ -710,7 +706,7 @@ def write_gif(path, frames, *, exposure: float = 0.0, fps: float = 12.0, loop: i
     exposure = check_exposure(exposure)
     check_fps(fps, video=False)
     if isinstance(loop, bool) or not isinstance(loop, (int, np.integer)) or not 0 <= loop <= 65535:
-        raise ValueError(f"loop={_shown_value(loop)} is not valid: expected a whole number "
+        raise ValueError(f"loop={shown(loop)} is not valid: expected a whole number "
                          "from 0 (loop forever) to 65535 (plays)")  # fmt: skip
     shape, frames = _frames(frames)
     oiio = _oiio()

@@ -23,7 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._schema import MAGNITUDE_MAX, cut as cut
+# (`cut` is also named `_limits.cut`, by `_kernel`.)
+from ._messages import cut as cut, real_array, shown as _shown
+from ._schema import MAGNITUDE_MAX
 from ._util import as_float, concrete, has_tracer
 
 _MAX = f"{MAGNITUDE_MAX:g}".replace("e+", "e")  # 1e30
@@ -123,25 +125,18 @@ def texture(unit: str = "linear radiance") -> Limit:
 
 
 def real(name: str, x, dtype=None):
-    """`x` as a float array (`as_float`), after checking that it holds real numbers:
-    a complex, boolean, string or object value is a `TypeError` naming `name` (NumPy
-    would drop an imaginary part with a warning, or fail deep inside the render)."""
-    given = x
-    if not isinstance(x, jax.Array | np.ndarray):
-        try:
-            x = jnp.asarray(x) if has_tracer(x) else np.asarray(x)
-        except (TypeError, ValueError) as e:  # ragged lists, ...
-            raise TypeError(f"{name}={cut(repr(given))} must be real numbers: {e}") from None
-    if x.dtype.kind not in "iuf":
-        raise TypeError(f"{name}={cut(repr(given))} must be real numbers, not {x.dtype}")
-    return as_float(x, dtype)
+    """`x` as a float array (`as_float`), after checking that it holds real numbers
+    (`_messages.real_array`): a complex, boolean, string or object value is a
+    `TypeError` naming `name`."""
+    if not isinstance(x, jax.Array | np.ndarray) and has_tracer(x):
+        x = jnp.asarray(x)  # a list holding tracers
+    return as_float(real_array(name, x), dtype)
 
 
 def shown(value, bad) -> str:
     """The first bad entry of `value` as a message shows it."""
     v = np.asarray(value)
-    first = v[np.asarray(bad)].flat[0] if v.ndim else v
-    return cut(repr(first.item() if hasattr(first, "item") else first))
+    return _shown(v[np.asarray(bad)].flat[0] if v.ndim else v)
 
 
 def check_fields(module: Any) -> None:

@@ -20,6 +20,11 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
+from . import _io
+from ._messages import cut
+
 # What `launch` tells each process: the coordinator's address, the process count and
 # this process's index (read by `join`).
 COORDINATOR = "JAXLENS_COORDINATOR"
@@ -235,8 +240,6 @@ def check_processes(processes: int) -> None:
     """`ValueError`, naming the numbers, unless this machine can hold `processes`
     processes of a job: 1 to `PER_CORE` times the CPU cores this process may use, and
     `PROCESS_MEMORY` each within the memory it can take (`_io.available_memory`)."""
-    from . import _io
-
     if processes < 1:
         raise ValueError(f"--processes {processes} is not valid: expected 1 or more")
     cores = _cores()
@@ -503,10 +506,6 @@ class Stage:
         return self.path(i).exists()
 
     def save(self, i: int, array) -> None:
-        import numpy as np
-
-        from . import _io
-
         with _io.atomic_output(self.path(i)) as tmp:
             np.save(tmp, np.asarray(array))
 
@@ -538,8 +537,6 @@ class Stage:
         bar.update(total - bar.n)
 
     def load(self, i: int):
-        import numpy as np
-
         return np.load(self.path(i))
 
     def remove(self) -> None:
@@ -648,8 +645,6 @@ def _hold(folder: Path, *, wait: float = 0.0, create: bool = True) -> int | None
 
 def _remove_held(folder: Path, lock: int) -> None:
     """Remove a stage folder this process holds (`lock`), then let it go."""
-    from . import _io
-
     try:
         _io.remove_temporary(folder)
     finally:
@@ -669,8 +664,6 @@ def _info(folder: Path) -> dict:
 
 def _busy(out: Path, folder: Path) -> str:
     """The refusal of a run whose stage folder another run holds."""
-    from ._schema import cut
-
     pid = _info(folder).get("pid")
     who = f" (pid {pid})" if isinstance(pid, int) else ""
     return (f"another jaxlens run is writing {cut(out)}{who}; wait for it or choose another "
@@ -693,8 +686,6 @@ def kept(out, what: str) -> str:
     launcher (after its processes ended): the finished items in the stage folder its
     run held (its lock file names this process). Folders with no item that no run
     holds are removed."""
-    from ._schema import cut
-
     out = Path(out)
     mine = None
     for folder in _folders(out, what):

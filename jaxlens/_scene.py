@@ -48,7 +48,9 @@ inclination_deg = 80.0
 
 Each table type (a sky layer, a motion, the redshift, the disk) registers its own keys
 beside its class (`_schema.register`; `docs/effects.md` and `docs/rendering.md` list
-the keys); this module reads the file and assembles them.
+the keys); this module reads the file and assembles them. It imports every module
+that registers a table, so the registry's public readers (`scene_table_types`,
+`scene_table_keys`) live here, where the registry is complete.
 """
 
 import dataclasses
@@ -62,11 +64,13 @@ from . import _schema
 from ._camera import MAX_SIDE, MAX_SUPERSAMPLE, SAMPLINGS, Camera
 from ._disk import Disk
 from ._effects import AbstractMotion, Redshift
+from ._messages import cut, describe
 from ._schema import (
     ANIMATION_PATHS as ANIMATION_PATHS,
     ANIMATION_RANGES as ANIMATION_RANGES,
     DEFAULT_SKY as DEFAULT_SKY,
     Key,
+    SceneKey,
     anything,
     greater,
     in_range,
@@ -122,7 +126,7 @@ def validate(data: dict, *, source: str = "scene") -> dict:
     `motion`, `redshift`, `disk` tables present). Raises `ValueError` naming the
     table, the key, the value and what is valid.
     """
-    source = _schema.cut(source)  # (a file's path, named in every message)
+    source = cut(source)  # (a file's path, named in every message)
     if not isinstance(data, dict):
         raise ValueError(f"{source}: a scene must be a table of keys")
     tables = {"camera": CAMERA_KEYS, "output": OUTPUT_KEYS, "animation": ANIMATION_KEYS}
@@ -144,14 +148,12 @@ def validate(data: dict, *, source: str = "scene") -> dict:
     if isinstance(layers, dict):
         layers = [layers]
     if not isinstance(layers, list) or not layers:
-        raise ValueError(
-            f"{source}: sky must be a list of [[sky]] tables, got {_schema.describe(layers)}"
-        )
+        raise ValueError(f"{source}: sky must be a list of [[sky]] tables, got {describe(layers)}")
     sky = []
     for i, layer in enumerate(layers):
         where = f"{source}: [[sky]] #{i + 1}"
         if not isinstance(layer, dict):
-            raise ValueError(f"{where} must be a table, got {_schema.describe(layer)}")
+            raise ValueError(f"{where} must be a table, got {describe(layer)}")
         rest = {k: v for k, v in layer.items() if k != "_base"}
         entry = _schema.validate("sky", where, rest)
         entry["_base"] = layer.get("_base", ".")
@@ -160,7 +162,7 @@ def validate(data: dict, *, source: str = "scene") -> dict:
     effects = data.get("effects", {})
     where = f"{source}: [effects]"
     if not isinstance(effects, dict):
-        raise ValueError(f"{where} must be a table, got {_schema.describe(effects)}")
+        raise ValueError(f"{where} must be a table, got {describe(effects)}")
     plain = {k: v for k, v in effects.items() if k not in EFFECT_SECTIONS}
     eff = _schema.table(where, plain, EFFECTS_KEYS, ignore=())
     for name, default_type in EFFECT_SECTIONS.items():
@@ -170,6 +172,20 @@ def validate(data: dict, *, source: str = "scene") -> dict:
             )
     out["effects"] = eff
     return out
+
+
+def scene_table_types(section: str) -> tuple[str, ...]:
+    """The table types a scene file may name in `section` (`"sky"`, `"motion"`,
+    `"redshift"`, `"disk"`), in registration order: e.g. the `type` of a `[[sky]]`.
+
+    **Raises:** `ValueError` for a `section` that has no table types."""
+    return tuple(_schema.entries(section))
+
+
+def scene_table_keys(section: str, name: str) -> dict[str, SceneKey]:
+    """The keys of table type `name` of `section`: each a `SceneKey` (kind, default,
+    check, and what is valid, in words with its unit)."""
+    return _schema.keys(section, name)
 
 
 def scene_keys_text() -> str:
@@ -182,7 +198,7 @@ def scene_keys_text() -> str:
             return "true" if v else "false"
         if isinstance(v, list):
             return "[" + ", ".join(toml(x) for x in v) + "]"
-        return _schema.describe(v)
+        return describe(v)
 
     def keys(table: dict[str, Key]) -> list[str]:
         out = []
@@ -198,15 +214,15 @@ def scene_keys_text() -> str:
                         ("animation", ANIMATION_KEYS)):  # fmt: skip
         lines += ["", f"[{name}]", *keys(table)]
     lines += ["", "[[sky]]    # layers, summed; none given: a default sky and a star"]
-    for kind in _schema.types("sky"):
-        lines += [f'  type = "{kind}"', *("  " + x for x in keys(_schema.keys("sky", kind)))]
+    for kind in scene_table_types("sky"):
+        lines += [f'  type = "{kind}"', *("  " + x for x in keys(scene_table_keys("sky", kind)))]
     lines += ["", "[effects]", *keys(EFFECTS_KEYS)]
     for section, default in EFFECT_SECTIONS.items():
         lines.append(f"[effects.{section}]" + (f'    # type = "{default}" if not given'
                                                  if default else ""))  # fmt: skip
-        for kind in _schema.types(section):
+        for kind in scene_table_types(section):
             lines += [f'  type = "{kind}"',
-                      *("  " + x for x in keys(_schema.keys(section, kind)))]  # fmt: skip
+                      *("  " + x for x in keys(scene_table_keys(section, kind)))]  # fmt: skip
     return "\n".join(lines)
 
 
@@ -224,7 +240,7 @@ def read_scene_file(path) -> dict:
     (or an endless one, such as `/dev/zero`) is refused. Raises `ValueError` naming
     the file for unreadable, too large or not UTF-8 files and TOML syntax errors."""
     path = Path(path)
-    name = _schema.cut(repr(str(path)))
+    name = cut(repr(str(path)))
     try:
         with open(path, "rb") as f:
             raw = f.read(SCENE_FILE_MAX + 1)

@@ -10,9 +10,11 @@ shift, a disk) registers its own table next to its class:
 def _star(t: dict, base: Path) -> GaussianStar: ...
 ```
 
-and `build("sky", where, raw_table, base)` validates a raw table (its `type` picks
-the entry) and returns the object. Adding a sky or an effect to the file format is
-that one registration, in the file of its class.
+and `build("sky", validate("sky", where, raw_table), base)` validates a raw table
+(its `type` picks the entry) and returns the object. Adding a sky or an effect to the
+file format is that one registration, in the file of its class. This module imports
+none of those files (they import it): `_scene`, which imports them all, serves the
+registry's public readers (`scene_table_types`, `scene_table_keys`).
 """
 
 import math
@@ -20,6 +22,9 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
+
+# (`cut` is also named `_schema.cut`, by `_cli_render`.)
+from ._messages import cut as cut, describe
 
 # Constants the command line's parser needs (kept here, free of JAX, so that building
 # the parser, and `jaxlens --help`, does not import it).
@@ -90,39 +95,6 @@ def in_range(lo, hi):
 def anything(v) -> bool:
     """Predicate that accepts every value of the key's kind."""
     return True
-
-
-# Values in messages are cut to about this many characters: a list of a million
-# numbers or a path of megabytes would make an unreadable line.
-SHOWN_MAX = 200
-
-
-def cut(text: str, limit: int = SHOWN_MAX) -> str:
-    """`text` cut to its first `limit` characters, saying how long it was."""
-    text = str(text)
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
-
-
-def describe(value) -> str:
-    """A value as an error message shows it: strings in double quotes, floats with all
-    their digits (`repr`: 179.99999999, not 180.0), and long strings, lists and tables
-    cut to their start and their length (at most about `SHOWN_MAX` characters)."""
-    if isinstance(value, str):
-        if len(value) > SHOWN_MAX:
-            return f'"{value[:SHOWN_MAX]}"... ({len(value)} characters)'
-        return f'"{value}"'
-    if isinstance(value, list):
-        if len(value) > 8:
-            first = ", ".join(cut(describe(v), 40) for v in value[:3])
-            return f"[{first}, ... {len(value)} items]"
-        return cut("[" + ", ".join(cut(describe(v), 40) for v in value) + "]")
-    if isinstance(value, dict):
-        items = [f"{cut(repr(k), 40)}: {cut(describe(v), 40)}" for k, v in list(value.items())[:8]]
-        more = f", ... {len(value)} keys" if len(value) > 8 else ""
-        return cut("{" + ", ".join(items) + more + "}")
-    if isinstance(value, int) and value.bit_length() > 600:  # `repr` stops at 4300 digits
-        return f"(an integer of about {round(value.bit_length() * math.log10(2))} digits)"
-    return cut(repr(value))
 
 
 # No number in a scene is larger in magnitude: radiances beyond it overflow float32
@@ -234,55 +206,49 @@ def register(section: str, name: str, keys: dict[str, Key], *, check=None):
     return deco
 
 
-def types(section: str) -> tuple[str, ...]:
-    """The table types a scene file may name in `section` (`"sky"`, `"motion"`,
-    `"redshift"`, `"disk"`), in registration order: e.g. the `type` of a `[[sky]]`."""
-    _load()
-    return tuple(_REGISTRY.get(section, {}))
-
-
-def keys(section: str, name: str) -> dict[str, Key]:
-    """The keys of table type `name` of `section`: each a `Key` (kind, default, check,
-    and what is valid, in words with its unit)."""
-    _load()
-    return _REGISTRY[section][name].keys
+def entries(section: str) -> dict[str, Entry]:
+    """The registered table types of `section`, by name, in registration order. Only
+    the types of the modules imported so far are there: this module imports none of
+    them (they import it), so a caller outside them reads the registry after importing
+    `_scene`, which imports every module that registers a table and serves the public
+    `scene_table_types` and `scene_table_keys`."""
+    if section not in _REGISTRY:
+        valid = f"one of {', '.join(_REGISTRY)}" if _REGISTRY else "none (import _scene first)"
+        raise ValueError(f"section {describe(section)} is not valid: expected {valid}")
+    return _REGISTRY[section]
 
 
 def validate(section: str, where: str, data, *, default_type: str | None = None) -> dict:
     """Validate a raw table of `section`: its `type` key picks the entry (or
     `default_type` where the key is absent). **Returns:** the validated dict, with
     `type` set."""
-    _load()
-    entries = _REGISTRY.get(section, {})
+    found = entries(section)
     if not isinstance(data, dict):
         raise ValueError(f"{where} must be a table, got {describe(data)}")
     kind = data.get("type", default_type)
-    if kind not in entries:
+    if kind not in found:
         raise ValueError(
-            f"{where} type = {describe(kind)} is not valid: expected one of {', '.join(entries)}"
+            f"{where} type = {describe(kind)} is not valid: expected one of {', '.join(found)}"
         )
-    entry = entries[kind]
+    entry = found[kind]
     out = table(f"{where} ({kind})", data, entry.keys, ignore=("type",))
     if entry.check is not None:
         entry.check(f"{where} ({kind})", out)
     return {"type": kind, **out}
 
 
+def keys(section: str, name: str) -> dict[str, Key]:
+    """The keys of table type `name` of `section` (see `entries` for which are there)."""
+    return entries(section)[name].keys
+
+
 def build(section: str, validated: dict, base: Path | str = ".") -> Any:
     """The object of a validated table of `section` (`validate`'s output); paths in it
     are relative to `base`."""
-    _load()
     fields = {k: v for k, v in validated.items() if k != "type"}
-    return _REGISTRY[section][validated["type"]].build(fields, Path(base))
+    return entries(section)[validated["type"]].build(fields, Path(base))
 
 
-def _load():
-    # The registrations live beside their classes; importing the modules runs them.
-    from . import _disk, _effects, _sky  # noqa: F401
-
-
-# Public names (jaxlens.SceneKey, scene_table_types, scene_table_keys): for tools that
-# list or document what a scene file may hold.
+# The public name of a key (jaxlens.SceneKey), for tools that list or document what a
+# scene file may hold (`_scene.scene_table_keys` gives them).
 SceneKey = Key
-scene_table_types = types
-scene_table_keys = keys

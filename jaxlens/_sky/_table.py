@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _schema
+from .._messages import describe
 from .._schema import Key, anything, greater, in_range
 from ._base import AbstractSky, direction_from_angles
 
@@ -46,9 +47,7 @@ def orientation(fields: dict) -> dict:
 
 def bad_value(where: str, fields: dict, name: str, valid: str) -> ValueError:
     """The error of a key whose value is not valid, in the wording of `_schema`."""
-    return ValueError(
-        f"{where} {name} = {_schema.describe(fields[name])} is not valid: expected {valid}"
-    )
+    return ValueError(f"{where} {name} = {describe(fields[name])} is not valid: expected {valid}")
 
 
 def sky_from_table(table: dict | list[dict], *, base: Path | str = ".") -> AbstractSky:

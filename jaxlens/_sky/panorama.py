@@ -9,6 +9,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _limits, _schema
+from .._io import read_image
 from .._limits import real
 from ._base import AbstractRGBSky, angles_from_direction, bilinear, to_rgb, unrotate
 from ._table import BRIGHTNESS, IMAGE_PATH, ORIENTATION, orientation
@@ -70,8 +71,6 @@ class Panorama(AbstractRGBSky):
     def from_file(cls, path, **kwargs) -> "Panorama":
         """Read an equirectangular image with OpenImageIO (PNG, JPEG, EXR, HDR, ...;
         8- and 16-bit files are converted from sRGB to linear)."""
-        from .._io import read_image
-
         return cls(to_rgb(read_image(path), name=f"panorama {str(path)!r}"), **kwargs)
 
     def __call__(self, n):

@@ -10,7 +10,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .. import _limits, _schema
+from .._io import read_image
 from .._limits import real
+from .._messages import describe
 from .._schema import Key, greater, in_range
 from .._util import concrete as _concrete
 from ._base import AbstractRGBSky, bilinear, to_rgb, unrotate
@@ -71,8 +73,6 @@ class PlaneImage(AbstractRGBSky):
     @classmethod
     def from_file(cls, path, width, **kwargs) -> "PlaneImage":
         """Read the picture with OpenImageIO; `width` in radians."""
-        from .._io import read_image
-
         return cls(to_rgb(read_image(path), name=f"plane image {str(path)!r}"), width, **kwargs)
 
     def __call__(self, n):
@@ -108,8 +108,8 @@ def _check(where: str, fields: dict) -> None:
     if has_plane:
         size, dist = fields["size"], fields["plane_distance"]
         if not math.degrees(2.0 * math.atan(0.5 * size / dist)) < 180.0:
-            raise ValueError(f"{where}: size = {_schema.describe(size)} at plane_distance = "
-                             f"{_schema.describe(dist)} is a picture 180 degrees wide: size / "
+            raise ValueError(f"{where}: size = {describe(size)} at plane_distance = "
+                             f"{describe(dist)} is a picture 180 degrees wide: size / "
                              "plane_distance must be finite (units of R_S)")  # fmt: skip
 
 
@@ -129,8 +129,6 @@ def _check(where: str, fields: dict) -> None:
 def _plane(fields: dict, base: Path) -> PlaneImage:
     """`path` is relative to `base`; the width is `width_deg`, or that of a picture
     `size` wide at `plane_distance` (units of R_S), or 30 degrees."""
-    from .._io import read_image
-
     path = base / fields["path"]
     image = to_rgb(read_image(path), name=f"plane image {str(path)!r}")
     kw = dict(brightness=fields["brightness"], **orientation(fields))

@@ -10,7 +10,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import _limits, _schema
 from .._limits import real
-from .._schema import Key, anything, cut
+from .._messages import cut
+from .._schema import Key, anything
 from .._util import concrete as _concrete, to_device
 from ._base import AbstractCompactSky, angular_distance, direction_from_angles
 from ._table import SIGMA

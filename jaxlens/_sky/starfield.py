@@ -13,6 +13,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .. import _limits, _schema
 from .._fastmath import arctan2
 from .._limits import real
+from .._messages import describe
 from .._schema import Key, anything
 from .._util import concrete as _concrete
 from ._base import AbstractRGBSky, direction_from_angles
@@ -140,7 +141,7 @@ def _check(where: str, fields: dict) -> None:
     if "lon_deg" not in fields and b is not None:
         low = min(np.atleast_1d(b))
         if not low > 0.0:  # random stars' brightness is log-uniform in its range
-            raise ValueError(f"{where}.brightness = {_schema.describe(b)}: random stars "
+            raise ValueError(f"{where}.brightness = {describe(b)}: random stars "
                              "(count) need brightness values > 0 (the least and the largest "
                              "give the log-uniform range)")  # fmt: skip
 
