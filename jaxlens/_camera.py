@@ -23,6 +23,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._fastmath import arctan2, sin_cos
+from ._ray_inputs import _check_distance, _check_dtype, _check_real, _show
 from ._util import as_float as _float, concrete as _concrete, is_zero as _is_zero
 
 
@@ -136,8 +137,6 @@ class Camera(eqx.Module):
 
         A complex, boolean or text value of an array field, or another `dtype`, is a
         `TypeError`; a value out of range a `ValueError` naming it."""
-        from ._trace import _check_distance, _check_dtype, _check_real
-
         angles = {"fov": fov, "yaw": yaw, "pitch": pitch, "roll": roll,
                   "azimuth": azimuth, "elevation": elevation}  # fmt: skip
         for name, value in angles.items():
@@ -186,8 +185,6 @@ class Camera(eqx.Module):
                 raise ValueError(f"{name}={v} must be a whole number from 1 to {top:,}")
         d = _concrete(self.distance)
         if d is not None:  # (after `eqx.tree_at`, `approach`: values set without __init__)
-            from ._trace import _check_distance
-
             _check_distance(d)
         f = _concrete(self.fov)
         if f is not None and (not np.all(np.isfinite(f)) or not np.all((f > 0) & (f < math.pi))):
@@ -303,8 +300,6 @@ class Camera(eqx.Module):
 
 def _cut(value, limit: int = 80) -> str:
     """`value` as a message shows it, cut to `limit` characters."""
-    from ._trace import _show
-
     return _show(value.tolist() if isinstance(value, np.ndarray) else value, limit)
 
 
@@ -355,8 +350,6 @@ def _static(c: Camera) -> tuple:
 
 
 def _sweep(camera: Camera, name: str, values) -> Camera:
-    from ._trace import _check_distance, _check_real
-
     known = _concrete(_check_real(name, values))
     if known is not None:  # before the cast: 1e300 is inf in float32
         if name == "distance":

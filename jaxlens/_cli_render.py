@@ -2,7 +2,6 @@
 options override the file)."""
 
 import argparse
-import functools
 import math
 import time
 from pathlib import Path
@@ -232,13 +231,8 @@ def run(args):
         if img is None:
             return 0  # process 0 writes the image
     else:
-        from ._util import when_idle
-
-        # The image's writer loads on the core a first render's compile leaves idle.
-        when_idle(functools.partial(_io.prepare_write, out))
         img = jl.render(scene)
     cli.status(f"writing {out}")
-    _io.prepare_write(out)  # (done already where the render waited on its compile)
     path = _io.write_image(out, img, exposure=scene.exposure)
     if args.distributed:
         stage.remove()

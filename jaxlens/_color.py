@@ -83,8 +83,8 @@ _DLOG_T = (_LOG_T1 - _LOG_T0) / (_NT - 1)
 @functools.cache
 def _table():
     """The table and the end slopes of ln Y in ln T (for linear extrapolation beyond
-    it), made on first use: the quadrature takes ~0.12 s, a third of importing the
-    renderer, and most scenes have no blackbody."""
+    it), made on first use: most scenes have no blackbody, and the quadrature would
+    lengthen every import of the renderer."""
     table = _build_table()
     lo = float((table[1, 0] - table[0, 0]) / _DLOG_T)  # Python floats: weak types
     hi = float((table[-1, 0] - table[-2, 0]) / _DLOG_T)

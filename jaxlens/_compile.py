@@ -1,24 +1,24 @@
-"""Compiled programs kept between processes.
+"""Where compilation lives: XLA's option profiles, the `program` wrapper, the programs
+kept between processes, and the compiles a host driver asks for ahead.
 
-XLA's persistent cache keeps compiled programs, but a fresh process still traces and
-lowers each program before it can look one up (0.8 s of a 960 x 540 render whose
-compiled programs were all in the cache, 6.8 s of a fit). Where a folder is set
-(`use_folder`: the command line sets its cache folder, as `keep_programs` does), a
-`Stored` function also keeps each executable it compiles
-(`jax.experimental.serialize_executable`) in `<folder>/jaxlens-programs`, under a
-digest of everything that decides it, and a later process loads and calls it: no
-tracing, no lowering, no lookup in XLA's cache.
-
-What decides a program, and so goes into its key: jaxlens's own source files, the
-versions of JAX, jaxlib, equinox, lineax and optimistix, the backend and its devices
-(the CPU's instruction set: XLA compiles for the host's), `jax_enable_x64`, the
-function, and its arguments' structure, static values, shapes and dtypes. A call whose
-static values have no faithful text (an object shown by its address) is not stored,
-nor is one on more than one device or one with host callbacks; a stored file that
-cannot be read is made again. These programs compile past XLA's persistent cache (an
-executable it serves would be kept without its code), so each is stored once. A file
-is loaded as code (as XLA's own cache loads its entries): the folder must be the
-user's own.
+- **Profiles** (`PROFILES`): XLA option sets a program may compile with on the CPU
+  backend (other backends compile with XLA's defaults). XLA refuses an option it does
+  not know by name; a profile's option that the installed XLA does not know is then
+  dropped for the rest of the process, with one warning, and the program compiles
+  without it (`_known_options`). Why each profile exists, and what it saves, is
+  measured in `benchmarks/results/latency.md`.
+- **`program(fn, profile=..., keep=True)`**: `fn` jitted with arrays traced and every
+  other argument static (as `eqx.filter_jit`), compiled with its profile. Called inside
+  another trace, it is part of that trace (no options: JAX takes them at the top only).
+- **Kept programs**: where a folder is set (`keep_programs`; the command line sets
+  its cache folder), a program's executable is also written to
+  `<folder>/jaxlens-programs` with the structure of its result, under a digest of all
+  that decides it (`_key`), and a later process loads and calls it: no tracing, no
+  lowering, no look-up in XLA's cache. A file is loaded as code (as XLA's own cache
+  entries are): the folder must be the user's own.
+- **`ahead(*calls)`**: the one way to compile on a second core, for host drivers
+  (`render`, `fit`, the command line): the calls' programs are lowered by the caller,
+  compiled on a thread while the driver's block runs, and waited for at its end.
 """
 
 import functools
@@ -30,12 +30,58 @@ import pickle
 import platform
 import tempfile
 import threading
+import warnings
 
 import equinox as eqx
 import jax
 import numpy as np
 
-from ._util import has_tracer
+# XLA's own fusion emitters off: the CPU backend's older loop fusion, whose code for
+# these programs compiles in about half the time and runs as fast.
+_LEGACY_FUSION = {"xla_cpu_use_fusion_emitters": False}
+
+PROFILES = {
+    # XLA's defaults: programs that run many times on much data (a render's blocks).
+    "xla": {},
+    # Programs whose compile is long and that run often (the exact trace, the loss).
+    "legacy_fusion": _LEGACY_FUSION,
+    # ... and LLVM at level 1 (XLA's default is 3): programs that run a few times
+    # (the fit's solver, its start search, a ray-map look-up).
+    "legacy_fusion_o1": {**_LEGACY_FUSION, "xla_backend_optimization_level": 1},
+    # ... and LLVM's optimisations off: programs that run once or twice on little data
+    # (a ray map's table, the fit's noise check).
+    "legacy_fusion_o0": {**_LEGACY_FUSION, "xla_backend_optimization_level": 0},
+}
+
+_UNKNOWN: set[str] = set()  # options the installed XLA refused by name
+_UNKNOWN_LOCK = threading.Lock()
+
+
+def options(profile: str) -> dict | None:
+    """The XLA options of `profile` on the current backend (`None`: XLA's defaults),
+    without those this XLA does not know."""
+    if jax.default_backend() != "cpu":
+        return None
+    return {k: v for k, v in PROFILES[profile].items() if k not in _UNKNOWN} or None
+
+
+def _known_options(run):
+    """`run()`; where XLA refuses one of the profiles' options by name (a jaxlib that
+    renamed or removed it), that option is dropped from every profile and `run()`
+    runs again (it must build its program from `options` anew)."""
+    while True:
+        try:
+            return run()
+        except Exception as e:  # noqa: BLE001 - re-raised unless an option is named
+            text = str(e)
+            named = {k for p in PROFILES.values() for k in p if k in text} - _UNKNOWN
+            if not named or "option" not in text.lower():
+                raise
+            with _UNKNOWN_LOCK:
+                _UNKNOWN.update(named)
+            warnings.warn(f"XLA does not know the compile option(s) {sorted(named)}: "
+                          "compiling without them", RuntimeWarning, stacklevel=3)  # fmt: skip
+
 
 _FOLDER: pathlib.Path | None = None
 _SUFFIX = ".executable"
@@ -56,8 +102,8 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
     """Keep this process's compiled programs in a folder, for later processes, as the
     command line does: the next notebook kernel or script that renders a scene,
     traces a batch of rays or fits an image of the same kind and size loads the
-    programs instead of compiling them (a default render: ~1.2 s sooner; a ring fit:
-    ~6 s).
+    programs instead of compiling them (`benchmarks/results/latency.md`: the
+    "warm cache" rows).
 
     Two stores in one folder: JAX's persistent compilation cache (the small programs),
     and the executables of `render`, `trace` and `fit` in its `jaxlens-programs`, which a
@@ -93,8 +139,7 @@ def keep_programs(folder: str | os.PathLike | None = None) -> pathlib.Path | Non
     except OSError:
         return None
     jax.config.update("jax_compilation_cache_dir", str(folder))
-    # Every program: the ones under a second add up (1.8 s of compiling was left in a
-    # render with the cache warm when only those over 0.5 s were kept).
+    # Every program: the ones under a second add up.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     use_folder(folder)
     return folder
@@ -148,20 +193,20 @@ def _code_digest() -> str:
 def _lapack_ready() -> None:
     """Set up JAX's LAPACK kernels (for a kept program that calls them), which JAX does
     when it lowers a program that calls them: a loaded program that calls them without
-    it would crash the process. Lowering a small QR does it (0.1 s: scipy's LAPACK)."""
+    it would crash the process. Lowering a small QR does it."""
     import jax.numpy as jnp
 
     jax.jit(jnp.linalg.qr).lower(np.zeros((2, 2), np.float32))
 
 
-def _key(name: str, tree, static, leaves) -> str | None:
+def _key(name: str, opts, tree, static, leaves) -> str | None:
     """The key of a call, or `None` where a static value has no faithful text."""
     text = repr((tree, jax.tree.structure(static), jax.tree.leaves(static)))
     if " at 0x" in text:
         return None
     avals = [(x.shape, x.dtype.name, bool(getattr(x, "weak_type", False))) for x in leaves]
     x64 = jax.dtypes.canonicalize_dtype(np.float64) == np.float64  # this thread's setting
-    blob = repr((_code_digest(), name, x64, text, avals)).encode()
+    blob = repr((_code_digest(), name, opts, x64, text, avals)).encode()
     return hashlib.sha256(blob).hexdigest()[:32]
 
 
@@ -199,259 +244,271 @@ def _count_cache_hits() -> None:
     jax.monitoring.register_event_listener(on_event)
 
 
-class Stored:
-    """A jitted function (`eqx.filter_jit`) whose compiled programs are kept in the
-    folder `use_folder` set; without one it is the function itself.
+class _Static:
+    """The non-array part of a call's arguments (`eqx.partition`), hashable: a static
+    argument of `jax.jit`."""
 
-    `structure(*args)` gives the pytree structure of the function's result without
-    tracing it (a kept program returns the flat leaves); a call checks it against the
-    traced result when it compiles a program.
-    """
+    def __init__(self, tree):
+        self.leaves, self.treedef = jax.tree.flatten(tree)
+        self._hash = hash((tuple(self.leaves), self.treedef))
 
-    def __init__(self, fn, structure):
-        self._fn = fn
-        self._structure = structure
-        self._name = f"{fn.__module__}.{getattr(fn, '__qualname__', repr(fn))}"
-        self._programs = {}
-        self._lock = threading.Lock()  # one entry a key, whichever thread comes first
-        self._loading = {}  # the keys `preload_last` is loading: their events
+    def __hash__(self):
+        return self._hash
 
-    def _keyed(self, args):
-        """`(key, tree, static, leaves)` of a call whose program can be kept (a folder
-        set, one device, no tracer among its arrays), else `None`."""
-        if not keeping() or jax.device_count() != 1:
-            return None
-        tree, static, leaves = _split(args)
-        if has_tracer(leaves):
-            return None  # part of a caller's trace
-        key = _key(self._name, tree, static, leaves)
-        return None if key is None else (key, tree, static, leaves)
+    def __eq__(self, other):
+        return (isinstance(other, _Static) and self.treedef == other.treedef
+                and self.leaves == other.leaves)  # fmt: skip
 
-    def _entry(self, args):
-        """`(entry, leaves)` of a kept call, or `None`: `entry` holds the executable
-        (once loaded or compiled), the program to compile otherwise (`jax.jit` of the
-        function on the flat leaves), the result's structure and the file."""
-        keyed = self._keyed(args)
-        if keyed is None:
-            return None
-        key, tree, static, leaves = keyed
-        with self._lock:
-            loading = self._loading.get((_FOLDER, key))
-        if loading is not None:  # `preload_last` is loading it: no second load
-            loading.wait()
-        with self._lock:
-            # An entry a folder: a program kept in one is written to the next one set.
-            if (_FOLDER, key) not in self._programs:
-                self._programs[_FOLDER, key] = self._load(key, args, tree, static, leaves)
-            entry = self._programs[_FOLDER, key]
-        return None if entry is None else (entry, leaves)
-
-    def _load(self, key, args, tree, static, leaves):
-        """The entry of a call: its kept executable, or the program to compile (`None`
-        where it cannot be kept: the function is then called as it is)."""
-        out_tree = self._structure(*args)
-        entry = _new_entry(_FOLDER, key, out_tree)
-        if entry["path"].with_suffix(".refused").exists():
-            return None
-        try:
-            entry["compiled"] = _read(entry["path"], len(leaves), out_tree.num_leaves)
-        except Exception:  # noqa: BLE001 - missing, partial or from another version
-            pass
-        if entry["compiled"] is None:
-            traced = []
-
-            def flat(*values):
-                out = self._fn(*eqx.combine(jax.tree.unflatten(tree, values), static))
-                traced.append(jax.tree.structure(out))
-                return jax.tree.leaves(out)
-
-            def check():
-                if traced and traced[0] != out_tree:
-                    raise AssertionError(f"{self._name}: result {traced[0]}, expected {out_tree}")
-
-            # Named apart from the function's own jit, whose entries XLA's cache keeps.
-            flat.__name__ = flat.__qualname__ = f"kept_{getattr(self._fn, '__name__', 'fn')}"
-            options = getattr(self._fn, "options", lambda: None)()  # `filter_jit_cpu`'s
-            entry["program"] = jax.jit(flat, compiler_options=options)
-            entry["check"] = check
-        return entry
-
-    def _compiled(self, entry, lower):
-        """The entry's executable: compiled from `lower()` (the program lowered) and
-        kept in its file, where it was not loaded. One compile an entry: a caller that
-        comes while another thread compiles it waits for that one."""
-        with entry["lock"]:
-            if entry["compiled"] is None:
-                lowered = lower()
-                text = lowered.as_text()
-                # Past XLA's persistent cache (the CLI sets one): an executable it
-                # serves serialises without its code, and the kept file would then
-                # fail in the next process ("Function ... not found"). Not written
-                # there (the file keeps it), under a name of its own (no entry of
-                # another program matches it); one served all the same is not kept.
-                _count_cache_hits()
-                served = getattr(_SERVED, "count", 0)
-                with _not_written_to_xla_cache():
-                    compiled = lowered.compile()
-                entry["check"]()
-                if getattr(_SERVED, "count", 0) == served:
-                    _keep(entry["path"], compiled, text)
-                entry["compiled"] = compiled
-        return entry["compiled"]
-
-    def __call__(self, *args):
-        found = self._entry(args)
-        if found is None:
-            return self._fn(*args)
-        entry, leaves = found
-        if entry["compiled"] is None:
-
-            def lower():
-                try:
-                    return entry["program"].lower(*leaves)
-                except Exception as e:  # the function's own call raises it
-                    raise _NotLowered from e
-
-            try:
-                self._compiled(entry, lower)
-            except _NotLowered:
-                return self._fn(*args)
-        return jax.tree.unflatten(entry["out_tree"], entry["compiled"](*leaves))
-
-    def is_kept(self, *args) -> bool:
-        """Whether a call with `args` would find its executable kept (loaded, being
-        loaded, or in its file), and so neither trace nor compile. Never waits."""
-        keyed = self._keyed(args)
-        if keyed is None:
-            return False
-        key = keyed[0]
-        with self._lock:
-            if (_FOLDER, key) in self._loading:
-                return True
-            entry = self._programs.get((_FOLDER, key))
-        if entry is not None:
-            return entry["compiled"] is not None
-        return (_FOLDER / f"{key}{_SUFFIX}").exists()
-
-    def preload(self, *args) -> threading.Thread | None:
-        """Load the kept executable of this call on a background thread (returned), for
-        a later call with arguments of the same kind (nothing where no folder is set or
-        none was kept: this never traces or compiles)."""
-        if not keeping():
-            return None
-        x64 = jax.config.read("jax_enable_x64")
-
-        def load():
-            with jax.enable_x64(x64):
-                try:
-                    self._entry(args)
-                except Exception:  # noqa: BLE001, S110 - the call itself reports it
-                    pass
-
-        thread = threading.Thread(target=load, name="jaxlens-preload", daemon=True)
-        thread.start()
-        return thread
-
-    def _hint_path(self, hint: str) -> pathlib.Path:
-        digest = hashlib.sha256(f"{self._name}\0{hint}".encode()).hexdigest()[:32]
-        return _FOLDER / "last" / digest
-
-    def note(self, hint: str, *args) -> None:
-        """Note under `hint` (any text that a caller knows before it has the arguments)
-        the key of a call with `args`, for `preload_last` in a later process."""
-        if not keeping() or jax.device_count() != 1:
-            return
-        tree, static, leaves = _split(args)
-        key = _key(self._name, tree, static, leaves)
-        path = self._hint_path(hint)
-        text = f"{key} {len(leaves)}"
-        try:
-            if key is None or path.read_text() == text:
-                return
-        except OSError:
-            pass
-        _write(path, text.encode())
-
-    def preload_last(self, hint: str) -> threading.Thread | None:
-        """Load on a background thread (returned) the kept executable of the call last
-        noted under `hint` (`note`), before the arguments of the next call are known:
-        a call with the same key then finds it loaded, and one with another key does
-        not wait for it. For a function whose result's structure does not depend on
-        its arguments. Nothing where no folder is set or no call was noted."""
-        if not keeping():
-            return None
-        folder = _FOLDER
-        try:
-            key, n_in = self._hint_path(hint).read_text().split()
-            n_in = int(n_in)
-        except (OSError, ValueError):
-            return None
-        with self._lock:
-            if (folder, key) in self._programs or (folder, key) in self._loading:
-                return None
-            done = self._loading[folder, key] = threading.Event()
-
-        def load():
-            try:
-                entry = _new_entry(folder, key, self._structure())
-                entry["compiled"] = _read(entry["path"], n_in, entry["out_tree"].num_leaves)
-                with self._lock:
-                    self._programs.setdefault((folder, key), entry)
-            except Exception:  # noqa: BLE001, S110 - missing or stale: the call compiles
-                pass
-            finally:
-                with self._lock:
-                    del self._loading[folder, key]
-                done.set()
-
-        thread = threading.Thread(target=load, name="jaxlens-preload", daemon=True)
-        thread.start()
-        return thread
-
-    def lower(self, *args):
-        """The call lowered, for `compile_ahead`: the function's, or the kept
-        program's, whose executable the next call then uses."""
-        found = self._entry(args)
-        if found is None:
-            return self._fn.lower(*args)
-        entry, leaves = found
-        if entry["compiled"] is not None:
-            return _Lowered(self, entry, None)
-        return _Lowered(self, entry, entry["program"].lower(*leaves))
+    def tree(self):
+        return jax.tree.unflatten(self.treedef, self.leaves)
 
 
-def _split(args):
-    """`(tree, static, leaves)` of a call's arguments: the structure and leaves of its
-    arrays, and the rest (`eqx.partition`)."""
-    dyn, static = eqx.partition(args, eqx.is_array)
-    leaves, tree = jax.tree.flatten(dyn)
-    return tree, static, leaves
+class _Call:
+    """A call's arguments split: the structure and leaves of its arrays, the rest."""
+
+    def __init__(self, args):
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        self.leaves, self.tree = jax.tree.flatten(dynamic)
+        self.dynamic, self.static = dynamic, static
+
+    def traced(self) -> bool:
+        return any(isinstance(x, jax.core.Tracer) for x in self.leaves)
+
+    def signature(self):
+        """What decides the call's program in this process (hashable)."""
+        avals = tuple((x.shape, x.dtype, bool(getattr(x, "weak_type", False)))
+                      for x in self.leaves)  # fmt: skip
+        return self.tree, _Static(self.static), avals
 
 
-def _new_entry(folder: pathlib.Path, key: str, out_tree) -> dict:
-    """An entry of `Stored._programs` for `key` in `folder`: nothing loaded yet."""
-    return {"out_tree": out_tree, "path": folder / f"{key}{_SUFFIX}", "compiled": None,
-            "program": None, "lock": threading.Lock()}  # fmt: skip
+class _Kept:
+    """A program kept in a file: its executable once loaded or compiled, else the
+    program to compile (`jax.jit` of the function on the flat leaves), and the
+    structure of its result (recorded when traced, stored in the file)."""
+
+    def __init__(self, path: pathlib.Path):
+        self.path = path
+        self.compiled = None
+        self.out_tree = None
+        self.program = None
+        self.traced = []  # the result's structure, once traced
+        self.lock = threading.Lock()
 
 
 class _NotLowered(Exception):
     """A kept program's function failed to trace (its own call then says why)."""
 
 
-class _Lowered:
-    """A kept program lowered: `compile()` compiles and keeps the executable for its
-    calls (or gives the one loaded)."""
+class Program:
+    """A function compiled as one program with its XLA profile, kept between processes
+    where a folder is set. Made by `program`."""
 
-    def __init__(self, stored, entry, lowered):
-        self._stored, self._entry, self._lowered = stored, entry, lowered
+    def __init__(self, fn, profile: str, keep: bool):
+        if profile not in PROFILES:
+            raise ValueError(f"profile={profile!r}: one of {sorted(PROFILES)}")
+        functools.update_wrapper(self, fn)
+        self._fn, self.profile, self.keep = fn, profile, keep
+        self._name = f"{fn.__module__}.{getattr(fn, '__qualname__', repr(fn))}"
+        self._jits = {}  # (backend, options) -> jax.jit; "nested": inside a trace
+        self._kept = {}  # (folder, key) -> _Kept (None: not keepable)
+        self._scheduled = set()  # the signatures called or compiled ahead so far
+        self._lock = threading.Lock()
 
-    def compile(self):
-        return self._stored._compiled(self._entry, lambda: self._lowered)
+    # ---------------------------------------------------------------- plain jit
+    def _jit(self, nested: bool = False):
+        opts = None if nested else options(self.profile)
+        key = "nested" if nested else (jax.default_backend(), repr(opts))
+        if key not in self._jits:
+            fn = self._fn
+
+            def call(dynamic, static):
+                return fn(*eqx.combine(dynamic, static.tree()))
+
+            call.__name__ = call.__qualname__ = fn.__name__  # as profiles name it
+            self._jits[key] = jax.jit(call, static_argnums=1, compiler_options=opts)
+        return self._jits[key]
+
+    # ---------------------------------------------------------------- kept programs
+    def _entry(self, c: _Call, load: bool = True) -> "_Kept | None":
+        """The kept program of call `c` (loaded from its file where `load`), or `None`
+        where it cannot be kept: no folder set, several devices, a static value without
+        a faithful text, a program refused before (host callbacks)."""
+        if not (self.keep and keeping()) or jax.device_count() != 1:
+            return None
+        key = _key(self._name, options(self.profile), c.tree, c.static, c.leaves)
+        if key is None:
+            return None
+        folder = _FOLDER
+        with self._lock:  # one entry a key, whichever thread comes first
+            if (folder, key) not in self._kept:
+                path = folder / f"{key}{_SUFFIX}"
+                self._kept[folder, key] = (None if path.with_suffix(".refused").exists()
+                                           else _Kept(path))  # fmt: skip
+            entry = self._kept[folder, key]
+        if entry is not None and load:
+            with entry.lock:
+                if entry.compiled is None and entry.program is None:
+                    self._load(entry, c)
+        return entry
+
+    def _load(self, entry: _Kept, c: _Call) -> None:
+        """Read `entry`'s executable from its file, else make the program to compile."""
+        try:
+            entry.compiled, entry.out_tree = _read(entry.path, len(c.leaves))
+            return
+        except Exception:  # noqa: BLE001, S110 - missing, partial or of another version
+            pass
+        fn, tree, static, traced = self._fn, c.tree, c.static, []
+
+        def flat(*values):
+            out = fn(*eqx.combine(jax.tree.unflatten(tree, values), static))
+            traced.append(jax.tree.structure(out))
+            return jax.tree.leaves(out)
+
+        # Named apart from the function's own jit, whose entries XLA's cache keeps.
+        flat.__name__ = flat.__qualname__ = f"kept_{getattr(fn, '__name__', 'fn')}"
+        entry.program = jax.jit(flat, compiler_options=options(self.profile))
+        entry.traced = traced
+
+    def _compile_kept(self, entry: _Kept, lower) -> None:
+        """Compile `lower()` (the kept program lowered) where `entry` has no executable
+        yet, and keep it in its file. One compile an entry: a caller that comes while
+        another thread compiles it waits for that one."""
+        with entry.lock:
+            if entry.compiled is not None:
+                return
+            lowered = lower()
+            text = lowered.as_text()
+            # Past XLA's persistent cache (the CLI sets one): an executable it serves
+            # serialises without its code, and the kept file would fail in the next
+            # process ("Function ... not found"). Not written there (the file keeps
+            # it); one served all the same is not kept.
+            _count_cache_hits()
+            served = getattr(_SERVED, "count", 0)
+            with _not_written_to_xla_cache():
+                compiled = lowered.compile()
+            entry.out_tree = entry.traced[0]
+            if getattr(_SERVED, "count", 0) == served:
+                _keep(entry.path, compiled, text, entry.out_tree)
+            entry.compiled = compiled
+
+    def _lower_kept(self, entry: _Kept, c: _Call):
+        try:
+            return entry.program.lower(*c.leaves)
+        except Exception as e:  # the function's own call raises it
+            raise _NotLowered from e
+
+    # ---------------------------------------------------------------- calls
+    def __call__(self, *args):
+        c = _Call(args)
+        if c.traced():  # part of a caller's trace
+            return self._jit(nested=True)(c.dynamic, _Static(c.static))
+        return _known_options(lambda: self._call(c))
+
+    def _call(self, c: _Call):
+        entry = self._entry(c)
+        if entry is not None:
+            try:
+                self._compile_kept(entry, lambda: self._lower_kept(entry, c))
+            except _NotLowered:
+                entry = None  # the function's own call says why
+        if entry is None:
+            out = self._jit()(c.dynamic, _Static(c.static))
+        else:
+            out = jax.tree.unflatten(entry.out_tree, entry.compiled(*c.leaves))
+        self._scheduled.add(c.signature())
+        return out
+
+    def _ahead(self, *args):
+        """A compile of this call for `ahead`: `None` where it is compiled already,
+        else a function to run on the thread, this call's program lowered here (a
+        trace on the thread would take turns with the caller's for the GIL) or, where
+        it is kept in a file, loaded there."""
+        c = _Call(args)
+        signature = c.signature()
+        if c.traced() or signature in self._scheduled:
+            return None
+        self._scheduled.add(signature)
+        entry = self._entry(c, load=False)
+        if entry is None:
+            lowered = self._jit().lower(c.dynamic, _Static(c.static))
+            return lowered.compile
+        if entry.compiled is not None:
+            return None
+        if entry.program is None and entry.path.exists():
+            return lambda: self._entry(c)  # loaded on the thread
+        self._entry(c)
+        if entry.compiled is not None:
+            return None
+        lowered = self._lower_kept(entry, c)
+        return lambda: self._compile_kept(entry, lambda: lowered)
+
+    def lower(self, *args):
+        """The call lowered (`jax.stages.Lowered`), as `jax.jit(...).lower` gives it."""
+        c = _Call(args)
+        return self._jit().lower(c.dynamic, _Static(c.static))
 
 
-def _keep(path: pathlib.Path, compiled, text: str) -> None:
-    """Write `compiled` to `path` with what loading it needs (whether it calls JAX's
-    LAPACK kernels); a program with host callbacks is not kept (`.refused`)."""
+def program(fn=None, *, profile: str = "xla", keep: bool = True):
+    """`fn` as one compiled program: arrays traced, every other argument static (as
+    `eqx.filter_jit`), compiled on the CPU with the XLA options of `profile` (a key of
+    `PROFILES`) and, where `keep`, kept between processes in the folder
+    `keep_programs` set. Used as `@program(profile=...)` or `program(fn, ...)`."""
+    if fn is None:
+        return functools.partial(program, profile=profile, keep=keep)
+    return Program(fn, profile, keep)
+
+
+class ahead:
+    """Compile `calls` (each `(program, *args)`: a `Program` and arguments of the kind a
+    later call will have) on a thread, started at once; `with ahead(...): ...` runs the
+    block meanwhile and waits for the compiles at its end (not where it raises). For
+    host drivers (`render`, `fit`): a program the driver needs next compiles on the
+    second core while the current one compiles or runs (XLA compiles without holding
+    the GIL). Each call's program is lowered here, by the caller (a trace on the thread
+    would take turns with the caller's for the GIL), or loaded on the thread where it
+    is kept; a call compiled or scheduled before is skipped. A failed compile is left
+    to the later call to report.
+    """
+
+    def __init__(self, *calls):
+        work = []
+        for prog, *args in calls:
+            try:
+                step = prog._ahead(*args)
+            except Exception:  # noqa: BLE001, S112 - the call itself reports it
+                continue
+            if step is not None:
+                work.append(step)
+        self._thread = None
+        if work:
+            x64 = jax.config.read("jax_enable_x64")
+
+            def run():
+                with jax.enable_x64(x64):
+                    for step in work:
+                        try:
+                            step()
+                        except Exception:  # noqa: BLE001, S112 - the call reports it
+                            continue
+
+            self._thread = threading.Thread(target=run, name="jaxlens-compile", daemon=True)
+            self._thread.start()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, tb):
+        if kind is None and self._thread is not None:
+            self._thread.join()
+        return False
+
+
+def _keep(path: pathlib.Path, compiled, text: str, out_tree) -> None:
+    """Write `compiled` to `path` with what loading it needs: the structure of its
+    result (an instance of it, which a later process flattens) and whether it calls
+    JAX's LAPACK kernels. A program with host callbacks, or whose result's structure
+    cannot be written, is not kept (`.refused`)."""
     if "callback" in text:
         _write(path.with_suffix(".refused"), b"")
         return
@@ -459,22 +516,27 @@ def _keep(path: pathlib.Path, compiled, text: str) -> None:
 
     try:
         payload = serialize_executable.serialize(compiled)[0]
-    except Exception:  # noqa: BLE001 - a backend that cannot serialise: not kept
+        shape = pickle.dumps(jax.tree.unflatten(out_tree, [0] * out_tree.num_leaves))
+    except Exception:  # noqa: BLE001 - a backend or a result that cannot be written
         _write(path.with_suffix(".refused"), b"")
         return
-    _write(path, pickle.dumps({"lapack": "lapack" in text, "payload": payload}))
+    _write(path, pickle.dumps({"lapack": "lapack" in text, "payload": payload,
+                               "result": shape}))  # fmt: skip
 
 
-def _read(path: pathlib.Path, n_in: int, n_out: int):
-    """The executable kept in `path` (for `n_in` flat arguments and `n_out` results)."""
+def _read(path: pathlib.Path, n_in: int):
+    """`(executable, result structure)` kept in `path`, for `n_in` flat arguments."""
     from jax.experimental import serialize_executable
 
     kept = pickle.loads(path.read_bytes())  # noqa: S301 - the user's own cache folder
     if kept["lapack"]:
         _lapack_ready()
+    out_tree = jax.tree.structure(pickle.loads(kept["result"]))  # noqa: S301 - likewise
+    n_out = out_tree.num_leaves
     in_tree = jax.tree.structure((tuple(range(n_in)), {}))
-    out_tree = jax.tree.structure(list(range(n_out)))
-    compiled = serialize_executable.deserialize_and_load(kept["payload"], in_tree, out_tree)
+    compiled = serialize_executable.deserialize_and_load(
+        kept["payload"], in_tree, jax.tree.structure(list(range(n_out)))
+    )
     if len(compiled.out_info) != n_out:
         raise ValueError(f"{path}: {len(compiled.out_info)} results, expected {n_out}")
-    return compiled
+    return compiled, out_tree

@@ -22,8 +22,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._camera import Camera, sky_direction
+from ._ray_inputs import DISTANCE_MESSAGE, _check_distance, _check_real, _distance_bad, _show
 from ._raymap import RayMap
-from ._trace import DISTANCE_MESSAGE, _check_distance, _check_real, _distance_bad, _show
 from ._util import concrete
 
 

@@ -23,9 +23,10 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
-from ._compile import Stored
-from ._status import CAPTURED, ESCAPED, UNRESOLVED
-from ._util import ONCE_PROGRAM, filter_jit_cpu, fusion_barrier, is_concrete, tracing
+from ._compile import program
+from ._ray_inputs import _check_distance, _check_dtype, _check_real
+from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
+from ._util import fusion_barrier, is_concrete, tracing
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -121,8 +122,6 @@ class RayMap(eqx.Module):
         a `ValueError`/`TypeError` eagerly, an `eqx.error_if` error at run time under
         `jit`.
         """
-        from ._trace import _check_distance, _check_dtype, _check_real
-
         distance = _check_real("distance", distance)
         dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
         distance = _check_distance(distance, dtype)
@@ -206,8 +205,6 @@ class RayMap(eqx.Module):
 
         **Returns:** a `TraceResult`; `r_min` is the closed-form periapsis.
         """
-        from ._trace import TraceResult
-
         alpha = jnp.asarray(alpha, self.phi.dtype)
         escaped = alpha > self.alpha_sh
         inside = self.horizon_angle(alpha) if self.inner is not None else 0.0
@@ -253,7 +250,7 @@ def tabulate(
     if not concrete_d:  # part of the caller's program
         return _tabulated(cls, d, **settings)
     # A concrete distance: one compiled program a setting, reused for every distance
-    # (op by op, each later build took 0.45 s; compiled, 0.03 s), and the table of
+    # (not op by op), and the table of
     # each of the last few distances kept for the next build. An eager jacfwd or
     # grad through the build traces it, so it stays op by op there.
     return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()))
@@ -302,23 +299,11 @@ def _settings(
                 iterations=int(iterations))  # fmt: skip
 
 
-def _structure(cls, d, settings: dict):
-    """The pytree structure of a built table, known without tracing it."""
-    sides = {"inner": (0.0,) * 4, "periapsis": (0.0,) * 2} if settings["captured"] else {}
-    return jax.tree.structure(cls(*(0.0,) * 6, **sides, max_windings=settings["max_windings"]))
-
-
 # The closed form on a few thousand knots, once a distance: compiled without LLVM's
-# optimisations (`ONCE_PROGRAM`; the table's errors unchanged), its code generated in
-# one piece: it compiles beside another program (a render's block, `trace`'s look-up)
-# and leaves that one the other core.
-@functools.partial(filter_jit_cpu, options=ONCE_PROGRAM)
+# optimisations (the table's errors unchanged).
+@program(profile="legacy_fusion_o0")
 def _tabulated_compiled(cls, d, settings: dict):
     return _tabulated(cls, d, **settings)
-
-
-# Kept between processes where the CLI (or `keep_programs`) keeps its cache.
-_tabulated_compiled = Stored(_tabulated_compiled, _structure)
 
 
 @functools.lru_cache(maxsize=16)
@@ -326,6 +311,12 @@ def _tabulated_recent(cls, dtype: str, distance: float, settings: tuple):
     """The tables of the last distances built eagerly (a few thousand knots each): the
     next `trace` at the same camera distance reuses its table."""
     return _tabulated_compiled(cls, np.asarray(distance, dtype), dict(settings))
+
+
+def _structure(cls, settings: dict):
+    """The pytree structure of a built table, known without tracing it."""
+    sides = {"inner": (0.0,) * 4, "periapsis": (0.0,) * 2} if settings["captured"] else {}
+    return jax.tree.structure(cls(*(0.0,) * 6, **sides, max_windings=settings["max_windings"]))
 
 
 def placeholder(dtype, lead: tuple = (), **options) -> "RayMap":
@@ -338,7 +329,7 @@ def placeholder(dtype, lead: tuple = (), **options) -> "RayMap":
     if settings["captured"]:
         shapes += [(n,), (), (n,), (n,), (n,), (n,)]
     leaves = [np.zeros(lead + s, dtype) for s in shapes]
-    return jax.tree.unflatten(_structure(RayMap, None, settings), leaves)
+    return jax.tree.unflatten(_structure(RayMap, settings), leaves)
 
 
 def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):

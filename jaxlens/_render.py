@@ -11,9 +11,7 @@ disk get the same blocks, memory bound and progress as a bare scene.
 and `grad` with respect to any array field of the scene.
 """
 
-import contextlib
 import dataclasses
-import functools
 
 import equinox as eqx
 import jax
@@ -23,13 +21,13 @@ from jaxtyping import Array, Float
 
 from . import _kernel
 from ._camera import Camera
+from ._compile import ahead, program
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
-from ._compile import Stored
 from ._raymap import RayMap, placeholder, tabulate
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import RENDER_PROGRAM, compile_ahead, filter_jit_cpu, host_driver, is_concrete
+from ._util import host_driver, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -89,26 +87,9 @@ def _block_body(scene, plan, maps, row0, rows, pair):
     return eqx.filter_vmap(one)(scene.camera, maps).astype(jnp.float32)
 
 
-# A scene without effects: its block compiled at LLVM's level 1 (`RENDER_PROGRAM`);
-# with effects at XLA's default level, under which an orbit, redshift and a disk at
-# 4096 x 4096 rendered in 6.9 s instead of 8.1-8.7 s.
-@functools.partial(filter_jit_cpu, options=RENDER_PROGRAM)
-def _block_plain(scene, plan, maps, row0, rows, pair):
-    return _block_body(scene, plan, maps, row0, rows, pair)
-
-
-@functools.partial(filter_jit_cpu, options={})
-def _block_effects(scene, plan, maps, row0, rows, pair):
-    return _block_body(scene, plan, maps, row0, rows, pair)
-
-
-_block_plain = Stored(_block_plain, lambda *_: jax.tree.structure(0))  # one array
-_block_effects = Stored(_block_effects, lambda *_: jax.tree.structure(0))
-
-
-def _block(p: Plan) -> Stored:
-    """The block program of plan `p`."""
-    return _block_effects if p.aberration or p.redshift or p.disk else _block_plain
+# One program for every block of every render of a kind (XLA's default options: the
+# block runs many times on much data).
+_block = program(_block_body, profile="xla")
 
 
 def _prepare(scene: Scene, dtype):
@@ -130,39 +111,21 @@ def _maps_for(scene, plan, dtype):
     return ray_maps(scene.camera.distance, scene.accuracy, dtype)
 
 
-# What the block program was compiled ahead for: a later render of the same kind of
-# scene (the explorer redraws in ~20 ms) goes straight to its cached program.
-_AHEAD: set = set()
-
-
-def _compile_ahead(scene, p: Plan, dtype):
-    """`compile_ahead` of the block program for placeholder ray maps of the right shapes
-    while the ray maps' own program compiles and runs (a null context without ray
-    maps, or where this kind of block was compiled ahead before)."""
+def _ahead(scene, p: Plan, dtype) -> tuple:
+    """The block program's call for placeholder ray maps of the right shapes, for
+    `ahead`: it compiles while the ray maps' own program compiles and runs (none
+    without ray maps)."""
     if p.geometry != "table":
-        return contextlib.nullcontext()
-    fb, dt, accuracy = p.frames, scene.camera.dtype, float(scene.accuracy)
-    first, kernel = frame(scene, slice(0, fb)), p.kernel_key()
-    leaves, tree = jax.tree.flatten((first, kernel))
-    key = (tree, tuple((x.shape, x.dtype) if eqx.is_array(x) else x for x in leaves),
-           p.rows, p.pair, jnp.dtype(dtype).name, accuracy)  # fmt: skip
-    if key in _AHEAD:
-        return contextlib.nullcontext()
-    _AHEAD.add(key)
-    # Traced and lowered here, before the ray maps' program: on a thread the two traces
-    # would take turns holding the GIL, and the block's compile, the longer, would start
-    # later.
-    try:
-        lowered = _block(p).lower(first, kernel, _map_placeholder(fb, accuracy, dtype),
-                               np.asarray(0, dt), p.rows, p.pair)  # fmt: skip
-    except Exception:  # noqa: BLE001 - the block's own call reports it
-        return contextlib.nullcontext()
-    return compile_ahead(lowered.compile)
+        return ()
+    fb, accuracy = p.frames, float(scene.accuracy)
+    maps = _map_placeholder(fb, accuracy, dtype)
+    return ((_block, frame(scene, slice(0, fb)), p.kernel_key(), maps,
+             np.asarray(0, scene.camera.dtype), p.rows, p.pair),)  # fmt: skip
 
 
 def _map_placeholder(frames: int, accuracy: float, dtype) -> RayMap:
     """Zeros shaped as `frames` stacked `ray_maps` results: known without tracing the
-    table's program (0.2 s of a render whose programs come from the cache)."""
+    table's program."""
     return placeholder(dtype, (frames,), accuracy=accuracy, **TABLE_SETTINGS)
 
 
@@ -209,7 +172,7 @@ def _prepared(scene: Scene, chunk_samples: int, dtype):
     _kernel.verify(scene, dtype)
     scene, dtype = _prepare(scene, dtype)
     p = plan(scene, chunk_samples=chunk_samples)
-    with _compile_ahead(scene, p, dtype):
+    with ahead(*_ahead(scene, p, dtype)):
         maps = _maps_for(scene, p, dtype)
     return scene, p, maps
 
@@ -252,7 +215,7 @@ def _call(scene, p: Plan, maps, fblock, rblock):
     f0, r0 = fblock[1], rblock[1]
     fb, n = p.frames, scene.camera.batch_shape[0]
     m = maps if fb == n else jax.tree.map(lambda a: a[f0 : f0 + fb], maps)
-    return _block(p)(frame(scene, slice(f0, f0 + fb)), p.kernel_key(), m,
+    return _block(frame(scene, slice(f0, f0 + fb)), p.kernel_key(), m,
                   np.asarray(r0, scene.camera.dtype), p.rows, p.pair)  # fmt: skip
 
 
@@ -359,8 +322,7 @@ def render_array(
         )
     if eager:
         # Called with concrete values: one compiled program, kept for the next call
-        # with the same kind of scene and sizes (op by op, a 96 x 80 image at k = 4
-        # took 11 s the first time and 0.5 s after; compiled, 4 s and 15 ms).
+        # with the same kind of scene and sizes (not op by op).
         return _render_array_compiled(scene, p.kernel_key(), ray_map)
     return _render_array(scene, p, ray_map)
 
@@ -421,7 +383,7 @@ def block_memory(
     p = plan(scene, chunk_samples=chunk_samples)
     part = frame(scene, slice(0, p.frames))
     maps = _maps_for(part, p, dtype)
-    lowered = _block(p).lower(part, p.kernel_key(), maps, jnp.asarray(0, dtype), p.rows, p.pair)
+    lowered = _block.lower(part, p.kernel_key(), maps, jnp.asarray(0, dtype), p.rows, p.pair)
     stats = lowered.compile().memory_analysis()
     return {
         "temp": int(stats.temp_size_in_bytes),

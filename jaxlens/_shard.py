@@ -21,7 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from ._trace import TraceResult, _check_distance, trace
+from ._ray_inputs import _check_distance
+from ._status import TraceResult
+from ._trace import trace
 
 AXIS = "rays"  # name of the mesh axis the rays are split over
 

@@ -1,8 +1,6 @@
 """`trace`: camera rays -> escape angle and capture, the single source of truth for Phi."""
 
 import abc
-import contextlib
-import functools
 import math
 from typing import ClassVar, final
 
@@ -10,64 +8,23 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike
 
 from . import _exact, _integrators
+from ._compile import program
 from ._integrators import ButcherTableau, integrate, rk_step
 from ._orbit import acceleration
-from ._compile import Stored
-from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus
-from ._util import (
-    OLDER_CPU_FUSION,
-    SIDE_PROGRAM,
-    compile_ahead,
-    concrete,
-    filter_jit_cpu,
-    has_tracer,
-    to_device,
-    tracing,
+from ._ray_inputs import (
+    _ALPHA_RANGE,
+    _bad_alpha,
+    _check_distance,
+    _check_dtype,
+    _check_real,
+    _show,
 )
-
-
-class TraceResult(eqx.Module):
-    """Outcome of tracing rays from a static camera.
-
-    **Fields:**
-    - `phi`: escape angle, the azimuth swept in the orbital plane from the camera
-      to the escaping asymptote (radians; $\\pi - \\alpha$ in flat space). For a
-      captured ray, the azimuth at which it crosses the horizon.
-    - `status`: per ray, an int8 code: `ESCAPED` (0), `CAPTURED` (1) or
-      `UNRESOLVED` (2: beyond the winding budget or the step budget; never painted
-      as captured), the positions of the items of `RayStatus`, which holds the
-      message of each. An array, not an `eqx.Enumeration` item, so that it indexes,
-      shards and compares like the other fields.
-    - `r_min`: smallest radius reached (units of R_S; 1 for captured rays).
-    """
-
-    phi: Float[Array, "..."]
-    status: Int[Array, "..."]
-    r_min: Float[Array, "..."]
-
-    @property
-    def captured(self):
-        """True where the ray falls into the horizon."""
-        return self.status == CAPTURED
-
-    @property
-    def escaped(self):
-        """True where the ray reaches infinity."""
-        return self.status == ESCAPED
-
-    @property
-    def unresolved(self):
-        """True where the ray ran out of its winding or step budget."""
-        return self.status == UNRESOLVED
-
-    @property
-    def half_turns(self):
-        """Number of completed half-turns, $\\lfloor \\phi / \\pi \\rfloor$."""
-        return jnp.floor(self.phi / jnp.pi).astype(jnp.int32)
-
+from ._raymap import tabulate
+from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus, TraceResult
+from ._util import has_tracer, to_device, tracing
 
 # ---------------------------------------------------------------------------
 # Methods. Each is a small immutable object: its settings fix the accuracy.
@@ -220,8 +177,6 @@ class Table(AbstractMethod):
     accuracy: float = eqx.field(static=True, default=1e-10)
 
     def __call__(self, alpha, distance, max_windings):
-        from ._raymap import tabulate
-
         if jnp.ndim(distance) != 0:
             d = jnp.ravel(distance)[0]
             distance = eqx.error_if(
@@ -239,12 +194,10 @@ class Table(AbstractMethod):
         return ray_map(alpha)
 
 
-# How the renderer and `trace` build their tables. Duplication steps of R_F at the
-# knots: 6 (3e-14 rad) compiled in 3.7 s where 8 took 4.5 s (100,000 rays), the
-# accuracy ladder's table errors unchanged to 3 digits. Slopes from differences of the
-# knot values (`RayMap.build`'s default), against exact ones: the first `trace` of
-# 100,000 rays 1.13 s instead of 1.95 s, a render's table program 0.66 s instead of
-# 1.43 s to compile and 1.8 ms instead of 4.4 ms to run.
+# How the renderer and `trace` build their tables: 6 duplication steps of R_F at the
+# knots (3e-14 rad; more compile longer, the accuracy ladder's table errors unchanged
+# to 3 digits), slopes from differences of the knot values (`RayMap.build`'s default;
+# exact ones compile and run about twice as long).
 TABLE_SETTINGS = {"iterations": 6}
 
 _MIN_BUCKET = 1024
@@ -259,51 +212,27 @@ def _bucket(n: int) -> int:
     return m
 
 
-@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+@program(profile="legacy_fusion")
 def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
 
 
-# Kept between processes where the CLI keeps its cache (the fit traces arcs' rays).
-_compiled = Stored(_compiled, lambda *_: jax.tree.structure(TraceResult(0, 0, 0)))
-
-
-# Compiled on a thread while the table's program is traced on the main one, which then
-# keeps a core (its trace 0.12 s instead of 0.21 s; the look-up compiles in the same
-# 0.22 s).
-@functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
+@program(profile="legacy_fusion_o1")
 def _through_map(ray_map, alpha):
     return ray_map(alpha)
-
-
-_through_map = Stored(_through_map, lambda *_: jax.tree.structure(TraceResult(0, 0, 0)))
-
-# The kinds of `_through_map` compiled ahead (while their first table was built).
-_AHEAD: set = set()
 
 
 def _table_rays(method: "Table", alpha, distance, max_windings):
     """An eager `Table` trace of padded rays at one distance: the table built by its own
     program (kept for the next call at that distance, see `RayMap.build`), then the
-    rays looked up in it. On a first call the look-up's program compiles on a thread
-    while the table's compiles and runs."""
-    from ._raymap import placeholder, tabulate
-
-    settings = dict(accuracy=method.accuracy, max_windings=float(max_windings),
-                    captured=True, **TABLE_SETTINGS)  # fmt: skip
-    kind = (method.accuracy, float(max_windings), alpha.shape, alpha.dtype.name)
-    ahead = contextlib.nullcontext()
-    if kind not in _AHEAD:
-        _AHEAD.add(kind)
-        # Traced and lowered here, compiled on the thread (two traces on two threads
-        # would take turns with the GIL).
-        try:
-            lowered = _through_map.lower(placeholder(alpha.dtype, **settings), alpha)
-            ahead = compile_ahead(lowered.compile)
-        except Exception:  # noqa: BLE001 - the call itself reports it
-            pass
-    with ahead:
-        ray_map = tabulate(distance, **settings)  # checked by `trace`
+    rays looked up in it."""
+    ray_map = tabulate(
+        distance,
+        accuracy=method.accuracy,
+        max_windings=float(max_windings),
+        captured=True,
+        **TABLE_SETTINGS,
+    )  # checked by `trace`; fmt: skip
     return _through_map(ray_map, alpha)
 
 
@@ -332,8 +261,8 @@ def _eager(method, alpha, distance, dtype, max_windings):
         return jax.tree.map(lambda x: x.reshape(shape), out)
     if jax.default_backend() == "cpu":
         # Cut on the host (shared memory on CPU): each of the device's slices is a
-        # program of its own, compiled on a process's first call (~0.05 s), and so is
-        # `jnp.asarray` of each result (~0.02 s): placed with `to_device`.
+        # program of its own, compiled on a process's first call, and so is
+        # `jnp.asarray` of each result: placed with `to_device`.
         return jax.tree.map(lambda x: to_device(np.asarray(x)[:n].reshape(shape)), out)
     return jax.tree.map(lambda x: x[:n].reshape(shape), out)
 
@@ -367,135 +296,6 @@ def method_for(name: str, accuracy: float) -> AbstractMethod:
         f"method={_show(name)} is not one of {', '.join(map(repr, METHODS))} "
         "(or an AbstractMethod instance)"
     )
-
-
-# The largest camera distance accepted (units of R_S), in float32 and float64: the bound
-# of the CLI and of scene files (`_schema.MAGNITUDE_MAX`). Both dtypes' geometry is
-# finite and accurate up to it (tests/test_checks.py); float32 fails near 1e37, where
-# 1/D leaves its normal range, float64 near 1e300. 1e30 R_S is 3e36 m for a solar mass.
-MAX_DISTANCE = 1e30
-# The bound as compared: 1e30 as float32 rounds it (1.0000000150e30), in every dtype, so
-# that a float32 camera at 1e30 keeps working once its distance is widened to float64.
-_MAX_COMPARED = float(np.float32(MAX_DISTANCE))
-
-# The dtypes rays are traced in (float16 and bfloat16 overflow in the closed forms).
-FLOAT_DTYPES = ("float32", "float64")
-
-_DISTANCE_RANGE = (
-    f"finite, > 1 and <= {MAX_DISTANCE:g} (units of R_S: the horizon is at 1, "
-    f"{MAX_DISTANCE:g} is the largest supported)"
-)
-
-
-def _show(value, limit: int = 80) -> str:
-    """`value` as an error message shows it: its repr, cut to `limit` characters."""
-    if isinstance(value, np.ndarray | np.generic) and value.ndim == 0:
-        value = value.item()  # np.float64(2.0) shown as 2.0
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _check_real(name: str, x):
-    """`x` if it holds real numbers (a list or tuple as a NumPy array), else a TypeError
-    naming `name` and the value (integers are converted; complex, bool, text and
-    objects are not)."""
-    if isinstance(x, list | tuple):
-        try:
-            x = np.asarray(x)
-        except (TypeError, ValueError):  # ragged
-            x = np.asarray(x, dtype=object)
-    try:
-        kind = np.dtype(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
-    except (TypeError, ValueError):
-        kind = np.dtype(object)
-    if kind.kind not in "iuf":
-        raise TypeError(f"{name}={_show(x)} must be real numbers (float or int), got dtype {kind}")
-    return x
-
-
-def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
-    """The float dtype rays are computed in, or a TypeError naming `what` (e.g.
-    "dtype", or "alpha and distance"): float32 or float64 only."""
-    try:
-        dt = np.dtype(dtype)
-    except TypeError:
-        dt = None
-    if dt is None or dt.name not in FLOAT_DTYPES:
-        shown = dt.name if dt is not None else _show(dtype)
-        raise TypeError(
-            f"{what}: {shown} is not supported, use float32 or float64 (the geometry "
-            "overflows in lower precisions; float64 needs jax_enable_x64)"
-        )
-    return dt
-
-
-def _check_distance(distance, dtype=None):
-    """ValueError for a concrete bad distance: not finite, <= 1, beyond `MAX_DISTANCE`,
-    or > 1 as given but rounded to the horizon in `dtype` (the dtype the rays are traced
-    in); eqx.error_if under jit."""
-    try:
-        d = np.asarray(distance)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        d = None
-    if d is not None:
-        _check_real("distance", d)
-        top = _MAX_COMPARED
-        d = d.astype(np.float64)
-        bad = ~np.isfinite(d) | ~(d > 1.0)
-        if np.any(bad):
-            raise ValueError(
-                f"distance={_show(d[bad].flat[0])} is not a valid camera radius: it must be "
-                + _DISTANCE_RANGE
-            )
-        if np.any(d > top):
-            raise ValueError(
-                f"distance={_show(d[d > top].flat[0])} is beyond the largest "
-                f"supported, {MAX_DISTANCE:g} R_S (float32 and float64): it must be "
-                + _DISTANCE_RANGE
-            )
-        rounded = d if dtype is None else d.astype(dtype)
-        if np.any(~(rounded > 1.0)):
-            i = int(np.argmin(rounded > 1.0))
-            raise ValueError(
-                f"distance={float(d.flat[i])!r} rounds to {float(rounded.flat[i])!r} (the "
-                f"horizon) in {jnp.dtype(dtype).name}: pass float64 inputs with "
-                "jax_enable_x64 on for a camera this close"
-            )
-        return distance
-    return eqx.error_if(distance, _distance_bad(distance), DISTANCE_MESSAGE)
-
-
-DISTANCE_MESSAGE = (
-    "distance must be finite and > 1 (units of R_S, the horizon is at 1), and at most "
-    f"{MAX_DISTANCE:g}"
-)
-
-
-def _distance_bad(distance):
-    """Where a traced `distance` is out of range (the predicate of `_check_distance`)."""
-    return ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > _MAX_COMPARED)
-
-
-_ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"
-# The top of that range as checked: pi rounded to float32 (8.7e-8 above pi), so that a
-# float32 pi, widened to float64, is still straight away.
-_ALPHA_TOP = float(np.float32(np.pi))
-
-
-def _bad_alpha(alpha):
-    """ValueError for a concrete local angle outside [0, pi] (NaN included); for traced
-    ones, the predicate (one comparison a ray) that `trace` puts on its result with
-    `eqx.error_if`, so that the rays do not wait for the check. `None` when checked."""
-    a = concrete(alpha)
-    if a is not None:
-        bad = ~((a >= 0) & (a <= _ALPHA_TOP))
-        if np.any(bad):
-            raise ValueError(
-                f"alpha={_show(a[bad].flat[0])} is not a valid local angle: it must be "
-                + _ALPHA_RANGE
-            )
-        return None
-    return jnp.any(~((alpha >= 0) & (alpha <= _ALPHA_TOP)))
 
 
 def trace(

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
 from ._exact import B_CRIT
+from ._ray_inputs import _ALPHA_RANGE, _bad_alpha, _check_distance, _check_dtype, _check_real
 
 # Coefficients c_n of (1 - x)^(-1/2) = sum c_n x^n.
 _C = (1.0, 0.5, 0.375, 0.3125, 0.2734375)
@@ -76,8 +77,6 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
     `TypeError`), eagerly, and an `eqx.error_if` error at run time under `jit`.
     """
     import equinox as eqx
-
-    from ._trace import _ALPHA_RANGE, _bad_alpha, _check_distance, _check_dtype, _check_real
 
     if order not in (1, 2, 3):
         raise ValueError(f"order={order!r} must be 1, 2 or 3")

@@ -234,8 +234,8 @@ def main(argv=None) -> int:
 
             keep_programs()
             # The objects alive now (JAX's modules, most of them) are left out of the
-            # garbage collector's passes while the command runs: each full pass walked
-            # them all (0.05 s; 0.2 s in all in a first fit). Given back at the end.
+            # garbage collector's passes while the command runs (each full pass would
+            # walk them all). Given back at the end.
             if gc.get_freeze_count() == 0:
                 gc.freeze()
                 frozen = True
@@ -275,16 +275,12 @@ def main(argv=None) -> int:
 
 
 def finish(code: int) -> None:
-    """End the process with exit status `code` once its work is done, the quick way:
-    compiles still running on a thread are waited for (they write the caches), the
+    """End the process with exit status `code` once its work is done, the quick way: the
     exit handlers run (JAX's backends and `jax.distributed` shut down, logs flushed),
     the output streams are flushed, and the interpreter then exits without freeing its
-    modules one by one (0.2 s after a default render)."""
+    modules one by one."""
     import atexit
 
-    util = sys.modules.get("jaxlens._util")  # not imported: nothing compiled
-    if util is not None:
-        util.compile_ahead.wait_all()
     atexit._run_exitfuncs()
     _exit_flushed(code)
 

@@ -517,49 +517,23 @@ def test_version_and_python_dash_m(capsys):
     assert p.returncode == 0 and p.stdout.strip() == f"jaxlens {jaxlens.__version__}"
 
 
-# A command's end (`cli.finish`): a compile still running on a thread (it writes the
-# caches) is waited for, the exit handlers run, the output is flushed, the status kept.
+# A command's end (`cli.finish`): the exit handlers run, the output is flushed, the
+# status kept.
 _FINISH = """
-import atexit, sys, time
-from jaxlens import _util
+import atexit
 from jaxlens.cli import finish
 
-def slow(path):
-    time.sleep(0.5)
-    open(path, "w").write("compiled")
-
-_util.compile_ahead.calls((slow, sys.argv[1]))
 atexit.register(lambda: print("exit handler"))
 print("done", end="")
 finish(3)
 """
 
 
-def test_a_command_ends_after_its_compiles_and_exit_handlers(tmp_path):
-    marker = tmp_path / "marker"
-    p = subprocess.run([sys.executable, "-c", _FINISH, str(marker)], capture_output=True,
-                       text=True, timeout=120)  # fmt: skip
+def test_a_command_ends_after_its_exit_handlers(tmp_path):
+    p = subprocess.run([sys.executable, "-c", _FINISH], capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
     assert p.returncode == 3, p.stderr[-2000:]
-    assert marker.read_text() == "compiled"
     assert p.stdout == "doneexit handler\n"
-
-
-def test_work_for_the_idle_core_is_done_while_a_compile_is_awaited_or_dropped():
-    import time
-
-    from jaxlens import _util
-
-    done = []
-    _util.when_idle(lambda: done.append("idle"))
-    _util.when_idle(lambda: 1 / 0)  # its error is left to the step that needs the work
-    _util.when_idle(lambda: done.append("after the error"))
-    with _util.compile_ahead.calls((time.sleep, 0.5)):  # a "compile" of 0.5 s
-        done.append("block")
-    assert done == ["block", "idle", "after the error"]
-    _util.when_idle(lambda: done.append("late"))
-    with _util.compile_ahead.calls((time.sleep, 0.0)):
-        time.sleep(0.2)  # the compile ends first: nothing to wait for, the work dropped
-    assert done[-1] == "after the error" and not _util._IDLE
 
 
 def test_command_line_process_has_no_traceback(tmp_path):

@@ -1,30 +1,38 @@
-"""The executables the CLI keeps between processes (`jaxlens._compile.Stored`): what
-goes into their key, and a kept program that calls JAX's LAPACK kernels loaded by a
-fresh process (which has not set them up: calling it unprepared ends the process)."""
+"""`jaxlens._compile`: programs compiled with their XLA profile, kept between processes
+(what goes into their key, the result's structure recorded with the executable, a kept
+program that calls JAX's LAPACK kernels loaded by a fresh process, which has not set
+them up: calling it unprepared ends the process), options an XLA does not know
+dropped, and the compiles a driver asks for ahead."""
 
 import os
 import subprocess
 import sys
+import threading
+import time
+import warnings
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from jaxlens import _compile
 
-# Keeps (first run) or loads (second run) a program with a QR decomposition in the
-# folder given, and prints a value of its result and whether it was traced.
+# Keeps (first run) or loads (second run) a program with a QR decomposition, whose
+# result is a dict holding a tuple, in the folder given, and prints a value of its
+# result and whether it was traced.
 _CHILD = """
 import sys
 
-import pytest
-import equinox as eqx, jax, jax.numpy as jnp, numpy as np
+import jax, jax.numpy as jnp, numpy as np
 from jaxlens import _compile
 
 traced = []
 
-@eqx.filter_jit
-def qr_sum(a):
+def qr_sum(a, scale):
     traced.append(1)
-    return jnp.sum(jnp.abs(jnp.linalg.qr(a)[1]))
+    r = jnp.linalg.qr(a)[1]
+    return {"sum": jnp.sum(jnp.abs(r)) * scale, "parts": (r[0, 0], r[1, 1])}
 
 if "xla" in sys.argv:  # XLA's persistent cache in the same folder, as the CLI sets it
     jax.config.update("jax_compilation_cache_dir", sys.argv[1])
@@ -37,21 +45,15 @@ if "written" in sys.argv:  # written to XLA's cache too, as earlier versions did
 
     _compile._not_written_to_xla_cache = contextlib.nullcontext
 _compile.use_folder(sys.argv[1])
-f = _compile.Stored(qr_sum, lambda *_: jax.tree.structure(0))
+f = _compile.program(qr_sum, profile="legacy_fusion_o1")
 a = np.arange(16.0, dtype=np.float32).reshape(4, 4) ** 0.5
-if "preload" in sys.argv:  # loaded on a thread before the call: the call finds it
-    f.preload(a).join()
-    assert all(e["compiled"] is not None for e in f._programs.values()), "not loaded"
-if "last" in sys.argv:  # the call noted before, loaded before its arguments are known
-    thread = f.preload_last("4 x 4")
-    if thread is not None:
-        thread.join()
-    print(len(f._programs), end=" ")
-    if "other" in sys.argv:  # a call of another kind: compiled, not waiting for it
-        a = np.ones((3, 3), np.float32)
-out = float(f(a))
-f.note("4 x 4", a)
-print(out, bool(traced))
+if "ahead" in sys.argv:  # loaded on the driver's thread before the call: it finds it
+    with _compile.ahead((f, a, 2.0)):
+        pass
+    assert all(e.compiled is not None for e in f._kept.values()), "not loaded"
+out = f(a, 2.0)
+assert sorted(out) == ["parts", "sum"] and isinstance(out["parts"], tuple)
+print(float(out["sum"]), bool(traced))
 """
 
 
@@ -148,8 +150,8 @@ from jaxlens import _raymap, _trace
 folder = jl.keep_programs(sys.argv[1])
 r = jl.trace(np.linspace(0.05, 3.0, int(sys.argv[2])), 10.0)
 stored = (_trace._compiled, _trace._through_map, _raymap._tabulated_compiled)
-entries = [e for f in stored for e in f._programs.values()]
-print(float(np.sum(np.asarray(r.phi))), all(e["program"] is None for e in entries),
+entries = [e for f in stored for e in f._kept.values()]
+print(float(np.sum(np.asarray(r.phi))), all(e.program is None for e in entries),
       len(entries), folder)
 """
 
@@ -195,41 +197,97 @@ def test_keep_programs_takes_the_folder_jax_was_given(tmp_path):
     assert done.stdout.split() == [str(tmp_path)]
 
 
-def test_a_preloaded_program_is_loaded_before_its_call(tmp_path):
+def test_a_program_loaded_ahead_is_not_traced(tmp_path):
     first, _ = _run(tmp_path)
-    again, traced = _run(tmp_path, "preload")
+    again, traced = _run(tmp_path, "ahead")
     assert not traced and again == first
 
 
-def test_the_last_call_noted_is_loaded_before_its_arguments_are_known(tmp_path):
-    # Nothing noted yet: nothing loaded; the call compiles and notes its key.
-    none, first, traced = _run(tmp_path, "last")
-    assert none == 0 and traced
-    # Noted: loaded ahead (one entry before the call), and the call finds it.
-    one, again, traced = _run(tmp_path, "last")
-    assert one == 1 and not traced and again == first
-    # A call of another kind: the noted program loaded in vain, the call compiled.
-    one, other, traced = _run(tmp_path, "last", "other")
-    assert one == 1 and traced and other != first
+@pytest.mark.parametrize("profile", sorted(_compile.PROFILES))
+def test_an_option_xla_does_not_know_is_dropped_not_an_error(monkeypatch, profile):
+    # A jaxlib that renamed or removed a flag the profiles use: XLA refuses it by name
+    # ("No such compile option"); the program compiles without it, with one warning.
+    flag = "xla_jaxlens_test_no_such_option"
+    monkeypatch.setitem(_compile.PROFILES, profile, {**_compile.PROFILES[profile], flag: True})
+    monkeypatch.setattr(_compile, "_UNKNOWN", set())
+    f = _compile.program(lambda x, n: jnp.sin(x) * n, profile=profile, keep=False)
+    with pytest.warns(RuntimeWarning, match=flag):
+        out = f(jnp.arange(3.0), 2)
+    np.testing.assert_allclose(out, np.sin(np.arange(3.0)) * 2, rtol=1e-6)
+    assert _compile.options(profile) == ({k: v for k, v in _compile.PROFILES[profile].items()
+                                          if k != flag} or None)  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once: the next program compiles without it
+        g = _compile.program(lambda x: x + 1, profile=profile, keep=False)
+        np.testing.assert_allclose(g(jnp.arange(2.0)), [1.0, 2.0])
 
 
-def test_is_kept_says_whether_a_call_would_load_its_program(tmp_path):
-    import jax
-    import jax.numpy as jnp
+def test_every_program_runs_where_xla_knows_none_of_the_profiles_options(tmp_path):
+    # Every profile given an option XLA does not know, in a fresh process: `trace`
+    # (exact and table), a render and the fit's start search and solver still run.
+    code = """
+import warnings
+import numpy as np, jaxlens as jl
+from jaxlens import _compile
+for name, opts in _compile.PROFILES.items():
+    _compile.PROFILES[name] = {**opts, "xla_jaxlens_test_unknown": 1}
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    a = np.linspace(0.1, 3.0, 2000)
+    exact = jl.trace(a, 10.0)
+    table = jl.trace(a, 10.0, method="table")
+    img = jl.render(jl.Camera(20.0, 1.0, 16, 12), jl.GaussianStar(0.05))
+print(len([w for w in seen if "xla_jaxlens_test_unknown" in str(w.message)]),
+      float(np.max(np.abs(exact.phi - table.phi))), float(img.sum()) > 0)
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    warned, diff, lit = done.stdout.split()
+    assert warned == "1" and float(diff) < 1e-4 and lit == "True"
 
-    from jaxlens._util import filter_jit_cpu
 
-    f = _compile.Stored(filter_jit_cpu(lambda x: 2.0 * x, options={}),
-                         lambda *_: jax.tree.structure(0))  # fmt: skip
-    x = jnp.arange(3.0)
-    assert not f.is_kept(x)  # no folder: nothing is kept
-    _compile.use_folder(tmp_path)
+def test_a_call_inside_another_trace_is_part_of_it():
+    f = _compile.program(lambda x: 2.0 * x, profile="legacy_fusion")
+    g = jax.grad(lambda x: jnp.sum(f(x) ** 2))
+    np.testing.assert_allclose(g(jnp.arange(3.0)), 8.0 * np.arange(3.0))
+    np.testing.assert_allclose(jax.vmap(f)(jnp.ones((2, 3))), 2.0)
+
+
+def test_ahead_compiles_once_on_a_thread_and_the_call_finds_it():
+    events = []
+    f = _compile.program(lambda x: jnp.cumsum(jnp.sin(x)) * 3.0, profile="legacy_fusion_o0")
+    x = jnp.linspace(0.0, 1.0, 37)
+
+    def listen(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            events.append(threading.current_thread().name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
     try:
-        assert not f.is_kept(x)
-        f(x)  # compiled and kept
-        assert f.is_kept(x)
-        assert not f.is_kept(jnp.arange(4.0))  # another shape
-        fresh = _compile.Stored(f._fn, f._structure)  # as a new process sees it: the file
-        assert fresh.is_kept(x)
+        with _compile.ahead((f, x)):
+            pass
+        with _compile.ahead((f, x)):  # scheduled before: nothing more to compile
+            pass
+        out = f(x)
     finally:
-        _compile.use_folder(None)
+        jax.monitoring.unregister_event_duration_listener(listen)
+    np.testing.assert_allclose(out, np.cumsum(np.sin(np.linspace(0, 1, 37))) * 3, rtol=1e-5)
+    assert events == ["jaxlens-compile"], events
+
+
+def test_ahead_leaves_a_failure_to_the_call_and_does_not_wait_where_the_block_raises():
+    def bad(x):
+        raise ValueError("the call's own error")
+
+    f = _compile.program(bad)
+    with _compile.ahead((f, jnp.ones(2))):  # nothing compiled: the trace failed
+        pass
+    with pytest.raises(ValueError, match="the call's own error"):
+        f(jnp.ones(2))
+    slow = _compile.program(lambda x: x)
+    slow._ahead = lambda *args: (lambda: time.sleep(2.0))
+    t0 = time.perf_counter()
+    with pytest.raises(KeyError), _compile.ahead((slow, 1.0)):
+        raise KeyError("the block failed")
+    assert time.perf_counter() - t0 < 1.0

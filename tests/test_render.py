@@ -215,23 +215,9 @@ def test_the_block_program_compiled_ahead_is_the_one_the_render_runs(jax_events)
         cams = approach(Camera(20.0, math.radians(60.0), 14, 10, supersample=2), [30.0, 8.0])
         frames = render_frames(cams, SKY)  # a size no other test renders
     assert jl.plan(jl.Scene(cams, SKY)).geometry == "table"
-    assert compiled.count("jit(_block_plain)") == 1, compiled
+    assert compiled.count("jit(_block_body)") == 1, compiled
     single = render(Camera(8.0, math.radians(60.0), 14, 10, supersample=2), SKY)
     np.testing.assert_allclose(frames[1], single, atol=1e-7)
-
-
-def test_scenes_with_effects_get_the_block_program_at_the_default_optimisation(jax_events):
-    # LLVM's level 1 compiles a plain scene's block sooner and runs it as fast; an
-    # effect scene's (an orbit, redshift, a disk) ran 20 % slower at that level.
-    from jaxlens import _render
-
-    cam = Camera(20.0, math.radians(60.0), 10, 6)
-    with jax_events("/jax/core/compile/backend_compile_duration") as compiled:
-        render(cam, SKY)
-        render(jl.Scene(cam, SKY, redshift=jl.Redshift("bolometric")))
-    assert "jit(_block_plain)" in compiled and "jit(_block_effects)" in compiled, compiled
-    assert _render._block_plain._fn.options() == {"xla_backend_optimization_level": 1}
-    assert _render._block_effects._fn.options() == {}
 
 
 def test_a_render_from_the_same_place_reuses_its_ray_map():
@@ -253,11 +239,11 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
     # process is played by forgetting the programs and the ray maps held in memory.
     from jaxlens import _compile, _raymap, _render
 
-    stored = (_render._block_plain, _raymap._tabulated_compiled)
+    stored = (_render._block, _raymap._tabulated_compiled)
 
     def forget():
         for f in stored:
-            f._programs.clear()
+            f._kept.clear()
         _raymap._tabulated_recent.cache_clear()
 
     scene = jl.Scene(Camera(20.0, math.radians(50.0), 18, 12, supersample=2), SKY)
@@ -272,7 +258,7 @@ def test_kept_programs_are_called_without_tracing_and_give_the_same_image(tmp_pa
             forget()
             traced.clear()
             again = render(scene)
-            assert "_block_plain" not in traced and "_tabulated_compiled" not in traced, traced
+            assert "_block_body" not in traced and "_tabulated_compiled" not in traced, traced
         # A damaged file is made again, not trusted.
         kept[0].write_bytes(b"not a program")
         forget()

@@ -33,6 +33,7 @@ import jax
 import numpy as np
 
 from .._util import host_driver
+from .pixels import real_image
 
 _EDGE = 0.25  # width of the shadow's edge in the model (pixels)
 # Range of the shape c: m, n > 0 needs -3 < c < 1; the exact map has c <= -1 (c -> -1
@@ -488,8 +489,6 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
     under `jit`, `vmap` or `grad` (it runs on the host).
     """
     host_driver("find_arcs", "call it on the image's values, outside the trace", img)
-    from .pixels import real_image
-
     a = real_image(img, "img")
     if a.ndim == 3:
         a = a.mean(axis=-1)

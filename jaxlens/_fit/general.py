@@ -1,8 +1,8 @@
 """`fit`: any parameter of a scene fitted to an image through the renderer's area-exact
 sampling, with a point-spread function, Gaussian or Poisson noise and a mask."""
 
+import contextlib
 import dataclasses
-import functools
 import math
 import time
 
@@ -14,21 +14,14 @@ import optimistix as optx
 
 from .. import _kernel, _plan
 from .._camera import Camera
+from .._compile import ahead, program
 from .._exact import _shadow_angle
-from .._compile import Stored
 from .._scene import Scene
-from .._util import (
-    FIT_PROGRAM,
-    OLDER_CPU_FUSION,
-    ONCE_PROGRAM,
-    compile_ahead,
-    filter_jit_cpu,
-    host_driver,
-    to_device,
-)
+from .._util import host_driver, to_device
 from . import psf as _psf, starts as _starts
 from .arcs import find_arcs, source_offset_from_arcs
-from .model import _chunks, _pixel_edges
+from .fit_result import Fit
+from .model import _chunks, _pixel_edges, _samples_for
 from .noise import (
     _clipping,
     _noise_clipped,
@@ -38,7 +31,7 @@ from .noise import (
     white_noise_found,
 )
 from .params import apply, floor_of, in_scene, parameter, split_name, star_of, values_of
-from .pixels import _grid_sets, _pixel_sets
+from .pixels import _grid_sets, _pixel_sets, read_observation, read_observation_transfer, real_image
 from .result import _result_name, _ring_verdict
 from .solve import dense_least_squares, newton_decrement
 from .table import escape_table
@@ -67,7 +60,7 @@ _RING_FLUX_PRIOR = 1.0
 # three times the solver's own stop (`solve.SETTLED_CHI2`), well inside what the noise
 # estimate itself is uncertain by. On the fit benchmark's first ring (400 x 300, the
 # noise re-estimated 1.3 % lower) the decrement was 2.3e-4 and the second pass moved
-# D by 0.004 and the rings' flux by 0.01 standard errors, in three steps (1.5 s).
+# D by 0.004 and the rings' flux by 0.01 standard errors, in three more steps.
 _RENOISED_CHI2 = 1e-3
 
 
@@ -87,7 +80,7 @@ class _Problem(eqx.Module):
     knots: int = eqx.field(static=True)
     # Yaw and pitch held at zero and no roll: the model's view is concretely unrotated
     # (a plan without the view rotation and its tangents, the edge's offsets exact in
-    # the image plane). The benchmark ring's Jacobian compiled in 1.8 s instead of 2.3 s.
+    # the image plane), whose Jacobian compiles sooner.
     centred: bool = eqx.field(static=True)
 
 
@@ -210,7 +203,7 @@ def _residuals_model(theta, args, prob: _Problem):
     return jnp.concatenate([r.ravel(), prior[None]]), m0
 
 
-@functools.partial(filter_jit_cpu, options=FIT_PROGRAM)
+@program(profile="legacy_fusion_o1")
 def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     """`dense_least_squares` on the residuals, the model as its auxiliary output."""
     return dense_least_squares(
@@ -218,14 +211,12 @@ def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     )
 
 
-@functools.partial(filter_jit_cpu, options=OLDER_CPU_FUSION)
+@program(profile="legacy_fusion")
 def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
 
-# Compiled ahead while the fit waits for the solver's program, beside it: without LLVM's
-# optimisations, it leaves the solver's compile more of the cores.
-@functools.partial(filter_jit_cpu, options=ONCE_PROGRAM)
+@program(profile="legacy_fusion_o0")
 def _renoised(model, data, weight, old, new, r, jac, moved):
     """The residuals and Jacobian of a Gaussian fit's point (model `model` before
     clipping, residuals `r` and Jacobian `jac` under the clipping and noise `old`)
@@ -245,20 +236,12 @@ def _renoised(model, data, weight, old, new, r, jac, moved):
     return r, jac, newton_decrement(r + jac @ moved, jac)
 
 
-# Kept between processes where the CLI keeps its cache; the results' structures.
-_solve = Stored(_solve, lambda *_: jax.tree.structure((0, 0, 0, 0, optx.RESULTS.successful, 0, 0)))
-_loss = Stored(_loss, lambda *_: jax.tree.structure(0))
-_renoised = Stored(_renoised, lambda *_: jax.tree.structure((0, 0, 0)))
-
-
 def _load(image):
     """`(img, fits, transfer)`: the image as float64 `(H, W)` (channels averaged, NaN
     kept), the `FitsImage` when it came from a FITS file (else `None`) and how a file's
     values were read (`read_observation_transfer`; `"linear"` for FITS, `None` for an
     array)."""
     from pathlib import Path
-
-    from .pixels import read_observation_transfer, real_image
 
     fits, transfer = None, None
     if isinstance(image, (str, Path)):
@@ -282,8 +265,6 @@ def _read_mask(mask, shape):
     if mask is None:
         return np.zeros(shape, bool)
     if isinstance(mask, str) or hasattr(mask, "__fspath__"):
-        from .pixels import read_observation
-
         mask = read_observation(mask) > 0.5
     mask = np.asarray(mask, bool)
     if mask.shape != shape:
@@ -503,20 +484,12 @@ def fit(
 
     with jax.enable_x64(True):
         cam0 = scene.camera
-        from .model import _samples_for
-
         span = float(np.max(img[valid]) - np.min(img[valid]))
         if span <= 1e-12 * max(1.0, abs(float(np.max(img[valid])))):
             raise ValueError(f"image is blank (every valid pixel is {float(img[valid][0]):.6g}): "
                              "no ring to fit")  # fmt: skip
         prof = _starts._profile(gray)
         scale = max(prof.peak + prof.floor, 1e-12)
-        # Loaded while the arcs are sought (a kept program: 0.3-0.4 s of a warm fit),
-        # and the solver's program of the last fit of this kind (0.5 s) likewise.
-        _starts.preload_search(gray, prof, scale)
-        hint = repr((img.shape, free, psf_kind, kind, sigma_known, supersample, block,
-                     max_pixels, knots, rtol, atol, max_steps))  # fmt: skip
-        _solve.preload_last(hint)
         masked = np.where(valid, img, np.nan)
         # The hole's image and the source: the arcs' centre, azimuth and radii.
         arcs = find_arcs(masked)
@@ -642,9 +615,9 @@ def fit(
         # The compared bins do not depend on the starting values where they are a
         # regular grid (with a PSF, or an image small enough to compare every pixel) or
         # where the image shows the shadow's edge and the hole's image stays where the
-        # arcs put it: the model's programs then compile on a thread while the start is
-        # searched (the solver's, the largest, after the loss).
-        ahead = None
+        # arcs put it: the model's programs then compile on the second core while the
+        # start is searched.
+        early = None
         moves = found and bool({"yaw", "pitch"} & set(free))  # the arcs are found again
         centre = (arcs.x_c, arcs.y_c) if found and not moves else (0.0, 0.0)
         edge_seen = arcs.shadow_radius if found else math.nan
@@ -653,18 +626,8 @@ def fit(
                                                   or math.isfinite(edge_seen)):  # fmt: skip
             *_, args_, prob_, theta_, solve_ = first
             theta_ = to_device(theta_)
-            if scan_d or scan_source:
-                calls = [(_loss, theta_, args_, prob_), (_solve, theta_, *solve_)]
-                if found and scan_source:  # the arcs' rays (`trace`) for the source's offset
-                    calls.insert(1, (source_offset_from_arcs, arcs, 10.0, 100.0))
-            elif _solve.is_kept(theta_, *solve_):
-                calls = [(_solve, theta_, *solve_)]  # loaded on the thread
-            else:
-                # The solver alone: traced here, before the start search traces its own
-                # program (two traces at once share one interpreter: 1.5 s for the
-                # solver's 1.2 s, and its compile, the critical path, starts later).
-                calls = [(_solve.lower(theta_, *solve_).compile,)]
-            ahead = compile_ahead.calls(*calls)
+            scans = [(_loss, theta_, args_, prob_)] if scan_d or scan_source else []
+            early = ahead(*scans, (_solve, theta_, *solve_))
         # --- starting values from the image where init does not give them.
         ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
         ring_init = None
@@ -711,9 +674,20 @@ def fit(
         centre = (arcs.x_c, arcs.y_c) if found else (0.0, 0.0)
         pix, k, model_scene, args, prob, theta0, solve_args = setup(start, f_px, centre)
         block, data, count = pix.block, pix.data, pix.count
-        # Otherwise the solver's program compiles on a thread while the starting values'
-        # scans below compile and run.
-        with ahead or compile_ahead(_solve, to_device(theta0), *solve_args):
+        clipped = math.isfinite(lo) or math.isfinite(hi)
+        passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
+        # The solver's program (where not compiled already) compiles on the second core
+        # while the starting values' scans below compile and run, and the noise check's
+        # where a second pass may need it (its shapes: the model's and the data's, the
+        # residuals one longer).
+        later = [(_solve, to_device(theta0), *solve_args)]
+        if passes == 2:
+            shape, nt = args[3].shape, len(theta0)
+            n = math.prod(shape) + 1
+            placeholders = (to_device(np.zeros(v)) for v in (shape, n, (n, nt), nt))
+            model, r, jac, moved = placeholders
+            later.append((_renoised, model, *args[3:6], args[5], r, jac, moved))
+        with ahead(*later), early or contextlib.nullcontext():
             # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
             # refined by a scan of the loss along their azimuth.
             for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
@@ -742,23 +716,10 @@ def fit(
                 cands[:, i_lat] = np.asarray(offsets) * math.sin(psi)
                 losses = [float(_loss(to_device(c), args, prob)) for c in cands]
                 theta0 = cands[int(np.nanargmin(np.where(np.isfinite(losses), losses, np.inf)))]
-            clipped = math.isfinite(lo) or math.isfinite(hi)
-            passes = 2 if kind == "gaussian" and not sigma_known and clipped else 1
-            if passes == 2:
-                # The noise check's program compiles while this thread waits for the
-                # solver's (it had compiled beside the first pass, which ran 0.75 s
-                # instead of 0.55 s). Its shapes: the model's and the data's, the
-                # residuals one longer.
-                shape = args[3].shape
-                n = math.prod(shape) + 1
-                nt = len(theta0)
-                model, r, jac, moved = (to_device(np.zeros(v)) for v in (shape, n, (n, nt), nt))
-                compile_ahead(_renoised, model, *args[3:6], args[5], r, jac, moved)
         steps = 0  # over the passes
         for i in range(passes):
             theta, r, jac, model, result, taken, moved = _solve(to_device(theta0), args,
                                                                  *solve_args[1:])  # fmt: skip
-            _solve.note(hint, theta, args, *solve_args[1:])
             steps += int(taken)
             if i == 0 and passes == 2:
                 # The clipped model's noise, re-estimated from the residuals well inside
@@ -800,8 +761,6 @@ def fit(
 def _finish(scene, free, phys, start, theta, r, jac, result, steps, model, data, count, kind,
             noise_sigma, gain, block, k, prob, t_start, sigma_known, pix, shadow_seen,
             noise_seen):  # fmt: skip
-    from .fit_result import Fit
-
     prior = 1  # the last residual: the ring-flux prior (0 when the flux is held)
     n_data = int((count > 0).sum())
     p = len(free)

@@ -2,14 +2,10 @@
 clipped to [0, 1]) and its slope, and the per-pixel noise level of an image."""
 
 import math
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-if TYPE_CHECKING:
-    from .starts import _Profile
 
 
 def _positive_part(u, s):
@@ -88,8 +84,9 @@ def _clipping(img):
     return lo, hi
 
 
-def _noise_clipped(img, prof: "_Profile", lo, hi) -> float:
-    """Per-pixel noise. Unclipped images: the robust second-difference estimate. Clipped
+def _noise_clipped(img, prof, lo, hi) -> float:
+    """Per-pixel noise (`prof`: the image's radial profile, `starts._Profile`).
+    Unclipped images: the robust second-difference estimate. Clipped
     ones: from the sky well outside the ring (flat there), as the 84th minus the 50th
     percentile, which clipping below the median leaves intact; inside the shadow (flat
     at 0) when the sky outside is too small."""

@@ -51,11 +51,10 @@ class ScaledNormalEquations(lx.AbstractLinearSolver):
     Gauss-Newton system `[J; sqrt(lambda) I]` that optimistix's Levenberg-Marquardt
     poses) by its normal equations, the columns scaled to unit norm and solved by
     `solve_spd`: no LAPACK call (lineax's default, QR, makes one), so the fit's solver
-    runs without setting up JAX's LAPACK kernels (importing scipy.linalg: 0.24-0.36 s of
-    a warm fit, beside `find_arcs`). The normal equations square the scaled columns'
-    condition number (about 100 for the fit benchmark's first ring), which float64
-    absorbs: on the fit benchmark every fitted value and step count is QR's, the two
-    degenerate rings included."""
+    runs without setting up JAX's LAPACK kernels (importing scipy.linalg). The normal
+    equations square the scaled columns' condition number (about 100 for the fit
+    benchmark's first ring), which float64 absorbs: on the fit benchmark every fitted
+    value and step count is QR's, the two degenerate rings included."""
 
     def init(self, operator, options):
         del options
@@ -171,8 +170,8 @@ def dense_least_squares(both, theta0, rtol, atol, max_steps):
     @jax.custom_jvp
     def fn(theta):
         # Traced once: optimistix traces the function twice (for its output's shape,
-        # then in the step), each trace of a ring fit's model and Jacobian 0.7-1 s; the
-        # jaxpr of the first trace is replayed in the second.
+        # then in the step), each a trace of the model and its Jacobian; the jaxpr of
+        # the first trace is replayed in the second.
         if not traced:
             traced["jaxpr"], shape = jax.make_jaxpr(with_jacobian, return_shape=True)(theta)
             traced["tree"] = jax.tree.structure(shape)

@@ -12,7 +12,7 @@ def solve_spd(a, b):
     different results from run to run (a ring fit: 11 of 15 runs in one process
     agreed, the others ended at D = 1.5, 1e40, ...), a race of XLA's CPU runtime
     around the call; and a program without LAPACK calls loads without setting up
-    JAX's LAPACK kernels (which imports scipy.linalg, ~0.15 s).
+    JAX's LAPACK kernels (which imports scipy.linalg).
 
     A zero pivot (a zero row and column) gives non-finite values, as `solve` does."""
     x = b

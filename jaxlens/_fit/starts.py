@@ -10,11 +10,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _compile
 from .._area import rect_in_disc
-from .._compile import Stored
-from .._util import SIDE_PROGRAM, filter_jit_cpu, to_device
+from .._compile import program
+from .._util import to_device
+from . import ring_table_data
+from .model import _pixel_edges
 from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
+from .pixels import _bin
 from .spd import solve_spd
 from .table import escape_table, solve_with_slope
 
@@ -42,8 +44,7 @@ def compute_ring_table():
 @functools.cache
 def _ring_table():
     """The stored `compute_ring_table()` (`ring_table_data`), as numpy arrays."""
-    from . import ring_table_data as t
-
+    t = ring_table_data
     return tuple(np.asarray(v) for v in (t.DISTANCE, t.ALPHA_E, t.ALPHA_SH, t.SLOPE))
 
 
@@ -76,8 +77,7 @@ def _radial_weights(width: int, height: int, block: int, ring_width: float):
     spacing $h$. Bins that are mirror images of each other about the centre's axes or
     diagonals see the same radial profile: one of each set is kept (a quarter of the
     bins of a centred grid, an eighth where the diagonals map bins onto bins). Kept
-    for the next call with the same arguments (the start search's preload and its
-    run).
+    for the next call with the same arguments.
 
     **Returns:** `((rho, first, inside, weights), group, count)`: the radii
     $\rho_j = j h$ (pixels); for each kept bin its first radius index $j_0$ (the grid
@@ -88,8 +88,6 @@ def _radial_weights(width: int, height: int, block: int, ring_width: float):
     (row-major) the kept bin it mirrors, and the number of bins each kept one stands
     for (numpy).
     """
-    from .model import _pixel_edges
-
     x0, y0 = _pixel_edges(width, height, block, np.float64)
     # Twice the centres' distances from the axes, whole numbers: exact keys.
     cx = np.rint(np.abs(2.0 * np.ravel(x0) + block)).astype(np.int64)
@@ -149,8 +147,7 @@ _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each cand
 _SHORTLIST = 8
 
 
-# On a cold fit it compiles beside the solver's program, which the fit waits for.
-@functools.partial(filter_jit_cpu, options=SIDE_PROGRAM)
+@program(profile="legacy_fusion_o1")
 def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     r"""Profile loss of each candidate distance.
 
@@ -237,10 +234,6 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
         return inf, c[1], jnp.nan_to_num(c[2], nan=1.0), inf, inf
 
     return jax.lax.map(lambda c: jax.lax.cond(jnp.isfinite(c[0]), one, skip, c), cands)
-
-
-# Kept between processes where the CLI keeps its cache: five arrays.
-_candidate_losses = Stored(_candidate_losses, lambda *_: jax.tree.structure((0,) * 5))
 
 
 class _Profile(eqx.Module):
@@ -391,8 +384,6 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     """The start search's model on the binned image: `(halves, args, setup, noise)` for
     `_candidate_losses` (`noise`: `(lo, hi, noise)`, the clipping bounds and the noise
     of one original pixel)."""
-    from .pixels import _bin
-
     h, w = img.shape
     coarse = max(1, round(min(h, w) / 40))
     cimg = _bin(img, coarse)
@@ -416,16 +407,6 @@ def _rows(cands):
     extra = np.full((3, 3), np.nan)
     extra[:, 1] = 1.0
     return np.concatenate([extra, cands], axis=0)
-
-
-def preload_search(img, prof: _Profile, scale) -> None:
-    """Load the start search's program where the command line keeps programs, on a
-    thread, while the caller goes on (`ring_start` then finds it loaded)."""
-    if not _compile.keeping():
-        return
-    halves, args0, setup0, _ = _search_inputs(img, prof, None, scale)
-    cands = _rows(_ring_candidates(prof, img.shape[1], None))
-    _candidate_losses.preload(to_device(cands), halves, args0, setup0, to_device(1))
 
 
 def ring_start(img, prof: _Profile, star_sigma, init, scale):

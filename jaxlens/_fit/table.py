@@ -10,7 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._ray_inputs import _check_distance, _check_dtype, _check_real, _show
 from .._raymap import RayMap, tabulate
+from .._util import concrete
 from .._weak import _C, _I_HALF, weak_field_terms
 
 # Below this distance (units of R_S) the primary Einstein ring lies beyond pi/2 from the
@@ -47,9 +49,6 @@ def einstein_ring_angle(distance: ArrayLike) -> Float[Array, "..."]:
     **Returns:** $\\alpha_E$ (radians), e.g. 29.8283 deg at $D = 10$;
     $\\approx\\sqrt{2/D}$ for $D \\gg 1$; $\\pi/2$ at $D_{ring}$.
     """
-    from .._trace import _check_distance, _check_dtype, _check_real, _show
-    from .._util import concrete
-
     distance = _check_real("distance", distance)
     dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
     distance = _check_distance(distance, dtype)
@@ -133,8 +132,7 @@ def _escape_table_jvp(knots, primals, tangents):
     at = d + h * jnp.asarray([0.0, -2.0, -1.0, 1.0, 2.0], d.dtype)
     # A loop, not a batch: under `vmap` the build's fusion barriers (`lax.cond` on the
     # distance) became selects, and XLA recomputed the closed form in each of 17
-    # fusions that read it (the fit benchmark ring's Jacobian compiled in 2.5 s instead
-    # of 2.1 s; the same values to 3e-16).
+    # fusions that read it (the same values to 3e-16; the Jacobian compiled longer).
     maps = jax.lax.map(lambda x: _escape_table(x, knots), at)
     primal = jax.tree.map(lambda v: v[0], maps)
     slope = jax.tree.map(lambda v: (v[1] - 8.0 * v[2] + 8.0 * v[3] - v[4]) / (12.0 * h), maps)
