@@ -219,7 +219,7 @@ def run(args):
         which = f" ({i + 1} of {len(images)})" if several else ""
         if count > 1:  # process 0's status line
             which = f" ({i + 1} of {len(images)}, over {count} processes)"
-        cli.status(f"fitting {image}{which} (compiling on first use)")  # ~30 s, most compiling
+        cli.status(f"fitting {image}{which} (compiling on first use)")
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
                             mask=args.mask, init=init or None)  # fmt: skip

@@ -19,8 +19,8 @@ from ._table import BRIGHTNESS
 
 
 # `_hash` and `_value_noise` are jitted: the sky calls them 34 and 3 times with the same
-# shapes, so a render's block traces each once (0.14 s instead of 0.19 s; the program,
-# after XLA inlines the calls, is the same).
+# shapes, so a render's block traces each once (the program, after XLA inlines the
+# calls, is the same).
 @jax.jit
 def _hash(i, j, k, salt):
     """A 32-bit integer hash (lowbias32) of lattice indices -> [0, 1): deterministic,
