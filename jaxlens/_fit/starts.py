@@ -391,7 +391,7 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     radial, group, count = _radial_weights(w, h, coarse, prof.ring_width)
     y = cimg.ravel() / scale
     sums = (count, np.bincount(group, y), np.bincount(group, y * y))
-    # Stored values clipped at 0 (or 1) where the noise crossed them: the model is
+    # Values stored clipped at 0 (or 1) where the noise crossed them: the model is
     # then the expected clipped value, with the noise of one original pixel.
     lo, hi = _clipping(img)
     noise = _noise_clipped(img, prof, lo, hi)
