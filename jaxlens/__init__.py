@@ -34,11 +34,10 @@ _MODULES = {
         "DormandPrince",
         "Euler",
         "Exact",
-        "RayStatus",
         "Table",
-        "TraceResult",
         "trace",
     ),
+    "_status": ("RayStatus", "TraceResult"),
     "_camera": (
         "Camera",
         "approach",

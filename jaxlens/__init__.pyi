@@ -147,6 +147,10 @@ from ._sky import (
     sky_from_table as sky_from_table,
     to_rgb as to_rgb,
 )
+from ._status import (
+    RayStatus as RayStatus,
+    TraceResult as TraceResult,
+)
 from ._trace import (
     RK4 as RK4,
     AbstractIntegrator as AbstractIntegrator,
@@ -155,9 +159,7 @@ from ._trace import (
     DormandPrince as DormandPrince,
     Euler as Euler,
     Exact as Exact,
-    RayStatus as RayStatus,
     Table as Table,
-    TraceResult as TraceResult,
     trace as trace,
 )
 from ._weak import weak_field_escape_angle as weak_field_escape_angle

@@ -23,7 +23,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._fastmath import arctan2, sin_cos
-from ._ray_inputs import _check_distance, _check_dtype, _check_real, _show
+from ._messages import shown
+from ._ray_inputs import _check_distance, _check_dtype, _check_real
 from ._util import as_float as _float, concrete as _concrete, is_zero as _is_zero
 
 
@@ -300,7 +301,7 @@ class Camera(eqx.Module):
 
 def _cut(value, limit: int = 80) -> str:
     """`value` as a message shows it, cut to `limit` characters."""
-    return _show(value.tolist() if isinstance(value, np.ndarray) else value, limit)
+    return shown(value.tolist() if isinstance(value, np.ndarray) else value, limit)
 
 
 def view_angles(dx, dy, dz):

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from . import _io, _multi, _schema
+from ._messages import cut
 from ._schema import DEFAULT_SKY
 
 SKY_CHOICES = "star | default | checker | panorama:PATH | plane:PATH"
@@ -16,7 +17,7 @@ def _size(text):
     """`--size WxH`: (width, height), each checked against the scene file's keys."""
     from ._scene import CAMERA_KEYS
 
-    shown = _schema.cut(repr(text))
+    shown = cut(repr(text))
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:

@@ -17,8 +17,9 @@ kept between processes, and the compiles a host driver asks for ahead.
   lowering, no look-up in XLA's cache. A file is loaded as code (as XLA's own cache
   entries are): the folder must be the user's own.
 - **`ahead(*calls)`**: the one way to compile on a second core, for host drivers
-  (`render`, `fit`, the command line): the calls' programs are lowered by the caller,
-  compiled on a thread while the driver's block runs, and waited for at its end.
+  (`render`, `fit`, an eager `trace` through a table): the calls' programs are
+  lowered by the caller, compiled on a thread while the driver's block runs, and
+  waited for at its end.
 """
 
 import functools
@@ -39,18 +40,23 @@ import numpy as np
 # XLA's own fusion emitters off: the CPU backend's older loop fusion, whose code for
 # these programs compiles in about half the time and runs as fast.
 _LEGACY_FUSION = {"xla_cpu_use_fusion_emitters": False}
+# The code generated in one piece, not split over the cores: for a program that compiles
+# beside another (`ahead`), which then keeps the other core.
+_ONE_PIECE = {"xla_cpu_parallel_codegen_split_count": 1}
 
 PROFILES = {
     # XLA's defaults: programs that run many times on much data (a render's blocks).
     "xla": {},
-    # Programs whose compile is long and that run often (the exact trace, the loss).
-    "legacy_fusion": _LEGACY_FUSION,
-    # ... and LLVM at level 1 (XLA's default is 3): programs that run a few times
-    # (the fit's solver, its start search, a ray-map look-up).
+    # The older fusion, LLVM at level 1 (XLA's default is 3): programs whose compile is
+    # long and that run a few times or often (the fit's solver and loss, the exact
+    # trace), which run as fast.
     "legacy_fusion_o1": {**_LEGACY_FUSION, "xla_backend_optimization_level": 1},
-    # ... and LLVM's optimisations off: programs that run once or twice on little data
-    # (a ray map's table, the fit's noise check).
-    "legacy_fusion_o0": {**_LEGACY_FUSION, "xla_backend_optimization_level": 0},
+    # ... in one piece: programs that compile beside another, usually compiled ahead
+    # (the fit's start search, the ray-map look-up of an eager trace).
+    "legacy_fusion_o1_side": {**_LEGACY_FUSION, **_ONE_PIECE, "xla_backend_optimization_level": 1},
+    # ... with LLVM's optimisations off: programs that run once or twice on little data
+    # and compile beside another (a ray map's table, the fit's noise check).
+    "legacy_fusion_o0_side": {**_LEGACY_FUSION, **_ONE_PIECE, "xla_backend_optimization_level": 0},
 }
 
 _UNKNOWN: set[str] = set()  # options the installed XLA refused by name
@@ -463,12 +469,12 @@ class ahead:
     """Compile `calls` (each `(program, *args)`: a `Program` and arguments of the kind a
     later call will have) on a thread, started at once; `with ahead(...): ...` runs the
     block meanwhile and waits for the compiles at its end (not where it raises). For
-    host drivers (`render`, `fit`): a program the driver needs next compiles on the
-    second core while the current one compiles or runs (XLA compiles without holding
-    the GIL). Each call's program is lowered here, by the caller (a trace on the thread
-    would take turns with the caller's for the GIL), or loaded on the thread where it
-    is kept; a call compiled or scheduled before is skipped. A failed compile is left
-    to the later call to report.
+    host drivers (`render`, `fit`, an eager `trace`): a program the driver needs next
+    compiles on the second core while the current one compiles or runs (XLA compiles
+    without holding the GIL). Each call's program is lowered here, by the caller (a
+    trace on the thread would take turns with the caller's for the GIL), or loaded on
+    the thread where it is kept; a call compiled or scheduled before is skipped. A
+    failed compile is left to the later call to report.
     """
 
     def __init__(self, *calls):
@@ -495,12 +501,17 @@ class ahead:
             self._thread = threading.Thread(target=run, name="jaxlens-compile", daemon=True)
             self._thread.start()
 
+    def wait(self) -> None:
+        """Wait for the compiles (a later call of these programs then finds them)."""
+        if self._thread is not None:
+            self._thread.join()
+
     def __enter__(self):
         return self
 
     def __exit__(self, kind, value, tb):
-        if kind is None and self._thread is not None:
-            self._thread.join()
+        if kind is None:
+            self.wait()
         return False
 
 

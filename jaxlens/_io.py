@@ -66,14 +66,6 @@ def _oiio():
 _PNG_SUB, _PNG_UP = 0x10, 0x20  # libpng's PNG_FILTER_SUB and PNG_FILTER_UP
 
 
-def prepare_write(path) -> None:
-    """Load what a first `write_image` to `path` needs (OpenImageIO, its plugin for the
-    file's format, NumPy's transfer-function loops), without writing: 0.05-0.07 s of a
-    first write, done while a render compiles (`_util.when_idle`)."""
-    _oiio().ImageOutput.create(str(path))  # loads the format's plugin; nothing opened
-    to_display(np.zeros((1, 1, 3), np.float32))
-
-
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """The sRGB transfer function (IEC 61966-2-1) on linear values, clipped to [0, 1]
     (NaN to 0). Plain NumPy, not traceable.

@@ -43,6 +43,7 @@ from . import _area, _disk, _effects, _limits
 from ._camera import view_angles
 from ._exact import shadow_angle
 from ._fastmath import sin_cos
+from ._messages import cut
 from ._sky import AbstractCompactSky, SkySum
 from ._sky._base import rgb_shift_power
 from ._trace import trace
@@ -65,7 +66,7 @@ def pixel_dtype(dtype):
     try:
         dt = np.dtype(dtype)
     except TypeError:
-        raise TypeError(f"dtype={_limits.cut(repr(dtype))} is not a dtype: pixels are "
+        raise TypeError(f"dtype={cut(repr(dtype))} is not a dtype: pixels are "
                         "computed in float32 or float64") from None  # fmt: skip
     if dt.name not in PIXEL_DTYPES:
         raise ValueError(f"dtype={dt.name} is not supported: pixels are computed in float32 "

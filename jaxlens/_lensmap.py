@@ -22,7 +22,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._camera import Camera, sky_direction
-from ._ray_inputs import DISTANCE_MESSAGE, _check_distance, _check_real, _distance_bad, _show
+from ._messages import shown
+from ._ray_inputs import DISTANCE_MESSAGE, _check_distance, _check_real, _distance_bad
 from ._raymap import RayMap
 from ._util import concrete
 
@@ -32,7 +33,7 @@ def _checked_map(ray_map: RayMap) -> RayMap:
     have been set by `eqx.tree_at`): a `ValueError` when known, `eqx.error_if` when
     traced, on the knot values (which every use reads; the distance itself may not be)."""
     if not isinstance(ray_map, RayMap):
-        raise TypeError(f"ray_map={_show(ray_map)} must be a RayMap (jl.RayMap.build(distance))")
+        raise TypeError(f"ray_map={shown(ray_map)} must be a RayMap (jl.RayMap.build(distance))")
     if concrete(ray_map.distance) is not None:
         _check_distance(concrete(ray_map.distance))
         return ray_map
@@ -50,7 +51,7 @@ def _checked_points(name: str, x, valid: str, bad_of):
         c = np.asarray(c, float)
         bad = bad_of(c, np)
         if np.any(bad):
-            raise ValueError(f"{name}={_show(c[bad][0].tolist())} is not valid: {valid}")
+            raise ValueError(f"{name}={shown(c[bad][0].tolist())} is not valid: {valid}")
         return x
     x = jnp.asarray(x, jnp.result_type(float, x))
     return eqx.error_if(x, jnp.any(bad_of(x, jnp)), f"{name} must be {valid}")
@@ -155,7 +156,7 @@ def point_source_images(
     `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
     """
     if isinstance(order, bool) or not isinstance(order, int | np.integer) or order < 0:
-        raise ValueError(f"order={_show(order)} must be a whole number >= 0")
+        raise ValueError(f"order={shown(order)} must be a whole number >= 0")
     ray_map = _checked_map(ray_map)
     if jnp.shape(direction)[-1:] != (3,):
         raise ValueError(

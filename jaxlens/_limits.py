@@ -23,8 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# (`cut` is also named `_limits.cut`, by `_kernel`.)
-from ._messages import cut as cut, real_array, shown as _shown
+from ._messages import real_array, shown as _shown
 from ._schema import MAGNITUDE_MAX
 from ._util import as_float, concrete, has_tracer
 

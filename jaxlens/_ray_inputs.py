@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._messages import real_array, shown
 from ._util import concrete
 
 # The largest camera distance accepted (units of R_S), in float32 and float64: the bound
@@ -28,30 +29,12 @@ _DISTANCE_RANGE = (
 )
 
 
-def _show(value, limit: int = 80) -> str:
-    """`value` as an error message shows it: its repr, cut to `limit` characters."""
-    if isinstance(value, np.ndarray | np.generic) and value.ndim == 0:
-        value = value.item()  # np.float64(2.0) shown as 2.0
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def _check_real(name: str, x):
     """`x` if it holds real numbers (a list or tuple as a NumPy array), else a TypeError
     naming `name` and the value (integers are converted; complex, bool, text and
     objects are not)."""
-    if isinstance(x, list | tuple):
-        try:
-            x = np.asarray(x)
-        except (TypeError, ValueError):  # ragged
-            x = np.asarray(x, dtype=object)
-    try:
-        kind = np.dtype(x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
-    except (TypeError, ValueError):
-        kind = np.dtype(object)
-    if kind.kind not in "iuf":
-        raise TypeError(f"{name}={_show(x)} must be real numbers (float or int), got dtype {kind}")
-    return x
+    checked = real_array(name, x)
+    return checked if isinstance(x, list | tuple) else x
 
 
 def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
@@ -62,9 +45,9 @@ def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
     except TypeError:
         dt = None
     if dt is None or dt.name not in FLOAT_DTYPES:
-        shown = dt.name if dt is not None else _show(dtype)
+        named = dt.name if dt is not None else shown(dtype)
         raise TypeError(
-            f"{what}: {shown} is not supported, use float32 or float64 (the geometry "
+            f"{what}: {named} is not supported, use float32 or float64 (the geometry "
             "overflows in lower precisions; float64 needs jax_enable_x64)"
         )
     return dt
@@ -85,12 +68,12 @@ def _check_distance(distance, dtype=None):
         bad = ~np.isfinite(d) | ~(d > 1.0)
         if np.any(bad):
             raise ValueError(
-                f"distance={_show(d[bad].flat[0])} is not a valid camera radius: it must be "
+                f"distance={shown(d[bad].flat[0])} is not a valid camera radius: it must be "
                 + _DISTANCE_RANGE
             )
         if np.any(d > top):
             raise ValueError(
-                f"distance={_show(d[d > top].flat[0])} is beyond the largest "
+                f"distance={shown(d[d > top].flat[0])} is beyond the largest "
                 f"supported, {MAX_DISTANCE:g} R_S (float32 and float64): it must be "
                 + _DISTANCE_RANGE
             )
@@ -132,7 +115,7 @@ def _bad_alpha(alpha):
         bad = ~((a >= 0) & (a <= _ALPHA_TOP))
         if np.any(bad):
             raise ValueError(
-                f"alpha={_show(a[bad].flat[0])} is not a valid local angle: it must be "
+                f"alpha={shown(a[bad].flat[0])} is not a valid local angle: it must be "
                 + _ALPHA_RANGE
             )
         return None

@@ -301,7 +301,7 @@ def _settings(
 
 # The closed form on a few thousand knots, once a distance: compiled without LLVM's
 # optimisations (the table's errors unchanged).
-@program(profile="legacy_fusion_o0")
+@program(profile="legacy_fusion_o0_side")
 def _tabulated_compiled(cls, d, settings: dict):
     return _tabulated(cls, d, **settings)
 

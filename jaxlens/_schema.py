@@ -23,8 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-# (`cut` is also named `_schema.cut`, by `_cli_render`.)
-from ._messages import cut as cut, describe
+from ._messages import describe
 
 # Constants the command line's parser needs (kept here, free of JAX, so that building
 # the parser, and `jaxlens --help`, does not import it).

@@ -11,8 +11,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from . import _exact, _integrators
-from ._compile import program
+from ._compile import ahead, program
 from ._integrators import ButcherTableau, integrate, rk_step
+from ._messages import shown
 from ._orbit import acceleration
 from ._ray_inputs import (
     _ALPHA_RANGE,
@@ -20,9 +21,8 @@ from ._ray_inputs import (
     _check_distance,
     _check_dtype,
     _check_real,
-    _show,
 )
-from ._raymap import tabulate
+from ._raymap import placeholder, tabulate
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus, TraceResult
 from ._util import has_tracer, to_device, tracing
 
@@ -212,27 +212,25 @@ def _bucket(n: int) -> int:
     return m
 
 
-@program(profile="legacy_fusion")
+@program(profile="legacy_fusion_o1")
 def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
 
 
-@program(profile="legacy_fusion_o1")
+@program(profile="legacy_fusion_o1_side")
 def _through_map(ray_map, alpha):
     return ray_map(alpha)
 
 
 def _table_rays(method: "Table", alpha, distance, max_windings):
-    """An eager `Table` trace of padded rays at one distance: the table built by its own
-    program (kept for the next call at that distance, see `RayMap.build`), then the
-    rays looked up in it."""
-    ray_map = tabulate(
-        distance,
-        accuracy=method.accuracy,
-        max_windings=float(max_windings),
-        captured=True,
-        **TABLE_SETTINGS,
-    )  # checked by `trace`; fmt: skip
+    """An eager `Table` trace of padded rays at one distance, driven from the host: the
+    table built by its own program (kept for the next call at that distance, see
+    `RayMap.build`), then the rays looked up in it. On a first call the look-up's
+    program compiles on the second core while the table's compiles and runs."""
+    settings = dict(accuracy=method.accuracy, max_windings=float(max_windings),
+                    captured=True, **TABLE_SETTINGS)  # fmt: skip
+    with ahead((_through_map, placeholder(alpha.dtype, **settings), alpha)):
+        ray_map = tabulate(distance, **settings)  # checked by `trace`
     return _through_map(ray_map, alpha)
 
 
@@ -274,9 +272,9 @@ def _check_number(name: str, value, valid: str, ok) -> None:
     """ValueError (TypeError for a non-number) unless `value` is a finite real number
     for which `ok(value)` holds; `valid` says the range."""
     if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise TypeError(f"{name}={_show(value)} must be a real number {valid}")
+        raise TypeError(f"{name}={shown(value)} must be a real number {valid}")
     if not (math.isfinite(value) and ok(value)):
-        raise ValueError(f"{name}={_show(value)} must be finite and {valid}")
+        raise ValueError(f"{name}={shown(value)} must be finite and {valid}")
 
 
 def method_for(name: str, accuracy: float) -> AbstractMethod:
@@ -293,7 +291,7 @@ def method_for(name: str, accuracy: float) -> AbstractMethod:
     if name == "dopri5":
         return DormandPrince(tol=max(accuracy / _DOPRI_ERR_COEF, 1e-14))
     raise ValueError(
-        f"method={_show(name)} is not one of {', '.join(map(repr, METHODS))} "
+        f"method={shown(name)} is not one of {', '.join(map(repr, METHODS))} "
         "(or an AbstractMethod instance)"
     )
 
@@ -348,7 +346,7 @@ def trace(
     _check_number("max_windings", max_windings, "> 0 (turns)", lambda v: v > 0)
     if not isinstance(method, str | AbstractMethod):
         raise TypeError(
-            f"method={_show(method)} must be one of {', '.join(map(repr, METHODS))} or an "
+            f"method={shown(method)} must be one of {', '.join(map(repr, METHODS))} or an "
             "AbstractMethod instance (e.g. jl.RK4(dphi=0.01))"
         )
     alpha = _check_real("alpha", alpha)

@@ -248,7 +248,7 @@ print(len([w for w in seen if "xla_jaxlens_test_unknown" in str(w.message)]),
 
 
 def test_a_call_inside_another_trace_is_part_of_it():
-    f = _compile.program(lambda x: 2.0 * x, profile="legacy_fusion")
+    f = _compile.program(lambda x: 2.0 * x, profile="legacy_fusion_o1")
     g = jax.grad(lambda x: jnp.sum(f(x) ** 2))
     np.testing.assert_allclose(g(jnp.arange(3.0)), 8.0 * np.arange(3.0))
     np.testing.assert_allclose(jax.vmap(f)(jnp.ones((2, 3))), 2.0)
@@ -256,7 +256,7 @@ def test_a_call_inside_another_trace_is_part_of_it():
 
 def test_ahead_compiles_once_on_a_thread_and_the_call_finds_it():
     events = []
-    f = _compile.program(lambda x: jnp.cumsum(jnp.sin(x)) * 3.0, profile="legacy_fusion_o0")
+    f = _compile.program(lambda x: jnp.cumsum(jnp.sin(x)) * 3.0, profile="legacy_fusion_o0_side")
     x = jnp.linspace(0.0, 1.0, 37)
 
     def listen(event, duration, **_):
@@ -286,7 +286,7 @@ def test_ahead_leaves_a_failure_to_the_call_and_does_not_wait_where_the_block_ra
     with pytest.raises(ValueError, match="the call's own error"):
         f(jnp.ones(2))
     slow = _compile.program(lambda x: x)
-    slow._ahead = lambda *args: (lambda: time.sleep(2.0))
+    slow._ahead = lambda *args: lambda: time.sleep(2.0)
     t0 = time.perf_counter()
     with pytest.raises(KeyError), _compile.ahead((slow, 1.0)):
         raise KeyError("the block failed")

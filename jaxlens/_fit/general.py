@@ -211,12 +211,12 @@ def _solve(theta0, args, prob: _Problem, rtol, atol, max_steps):
     )
 
 
-@program(profile="legacy_fusion")
+@program(profile="legacy_fusion_o1")
 def _loss(theta, args, prob: _Problem):
     return jnp.sum(_residuals(theta, args, prob) ** 2)
 
 
-@program(profile="legacy_fusion_o0")
+@program(profile="legacy_fusion_o0_side")
 def _renoised(model, data, weight, old, new, r, jac, moved):
     """The residuals and Jacobian of a Gaussian fit's point (model `model` before
     clipping, residuals `r` and Jacobian `jac` under the clipping and noise `old`)

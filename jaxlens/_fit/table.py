@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._ray_inputs import _check_distance, _check_dtype, _check_real, _show
+from .._messages import shown
+from .._ray_inputs import _check_distance, _check_dtype, _check_real
 from .._raymap import RayMap, tabulate
 from .._util import concrete
 from .._weak import _C, _I_HALF, weak_field_terms
@@ -59,7 +60,7 @@ def einstein_ring_angle(distance: ArrayLike) -> Float[Array, "..."]:
     )
     if known is not None:
         if np.any(known < D_RING):
-            raise ValueError(f"distance={_show(known[known < D_RING].flat[0])} {message}")
+            raise ValueError(f"distance={shown(known[known < D_RING].flat[0])} {message}")
     else:
         distance = eqx.error_if(distance, jnp.any(distance < D_RING), "distance " + message)
     d = jnp.asarray(distance, dtype)
