@@ -41,21 +41,19 @@ import numpy as np
 # these programs compiles in about half the time and runs as fast.
 _LEGACY_FUSION = {"xla_cpu_use_fusion_emitters": False}
 # The code generated in one piece, not split over the cores: for a program that compiles
-# beside another (`ahead`), which then keeps the other core.
+# beside another, which then keeps the other core.
 _ONE_PIECE = {"xla_cpu_parallel_codegen_split_count": 1}
 
 PROFILES = {
     # XLA's defaults: programs that run many times on much data (a render's blocks).
     "xla": {},
     # The older fusion, LLVM at level 1 (XLA's default is 3): programs whose compile is
-    # long and that run a few times or often (the fit's solver and loss, the exact
-    # trace), which run as fast.
+    # long and that run a few times or often (the fit's solver, loss and start search,
+    # the exact trace, a ray-map look-up), which run as fast.
     "legacy_fusion_o1": {**_LEGACY_FUSION, "xla_backend_optimization_level": 1},
-    # ... in one piece: programs that compile beside another, usually compiled ahead
-    # (the fit's start search, the ray-map look-up of an eager trace).
-    "legacy_fusion_o1_side": {**_LEGACY_FUSION, **_ONE_PIECE, "xla_backend_optimization_level": 1},
-    # ... with LLVM's optimisations off: programs that run once or twice on little data
-    # and compile beside another (a ray map's table, the fit's noise check).
+    # ... with LLVM's optimisations off, in one piece: programs that run once or twice
+    # on little data and compile beside another (a ray map's table, the fit's noise
+    # check).
     "legacy_fusion_o0_side": {**_LEGACY_FUSION, **_ONE_PIECE, "xla_backend_optimization_level": 0},
 }
 

@@ -147,7 +147,7 @@ _PROFILE_STEPS = 4  # Gauss-Newton steps on (log focal, log sigma) for each cand
 _SHORTLIST = 8
 
 
-@program(profile="legacy_fusion_o1_side")
+@program(profile="legacy_fusion_o1")
 def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     r"""Profile loss of each candidate distance.
 
