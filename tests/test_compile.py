@@ -224,27 +224,42 @@ def test_an_option_xla_does_not_know_is_dropped_not_an_error(monkeypatch, profil
 
 def test_every_program_runs_where_xla_knows_none_of_the_profiles_options(tmp_path):
     # Every profile given an option XLA does not know, in a fresh process: `trace`
-    # (exact and table), a render and the fit's start search and solver still run.
+    # (exact, and a table's build and look-up), a render and a ring fit (its start
+    # search, solver and noise check on an image clipped at 0) still run, and give
+    # the results they give with the options XLA knows.
     code = """
-import warnings
+import math, sys, warnings
 import numpy as np, jaxlens as jl
 from jaxlens import _compile
-for name, opts in _compile.PROFILES.items():
-    _compile.PROFILES[name] = {**opts, "xla_jaxlens_test_unknown": 1}
+if sys.argv[1] == "unknown":
+    for name, opts in _compile.PROFILES.items():
+        _compile.PROFILES[name] = {**opts, "xla_jaxlens_test_unknown": 1}
 with warnings.catch_warnings(record=True) as seen:
     warnings.simplefilter("always")
     a = np.linspace(0.1, 3.0, 2000)
     exact = jl.trace(a, 10.0)
     table = jl.trace(a, 10.0, method="table")
-    img = jl.render(jl.Camera(20.0, 1.0, 16, 12), jl.GaussianStar(0.05))
+    sky = jl.GaussianStar(math.radians(1.5), 0.8)  # no floor: the noise clipped at 0
+    img = jl.render(jl.Camera(20.0, math.radians(60.0), 96, 72, supersample=3), sky)
+    noisy = img[..., 0] + 0.01 * np.random.default_rng(1).standard_normal(img.shape[:2])
+    fit = jl.fit_ring(np.clip(noisy, 0.0, 1.0), star_sigma=math.radians(1.5))
+from jaxlens._fit import general, starts
+ran = [p._scheduled for p in (general._solve, general._renoised, starts._candidate_losses)]
+assert all(ran), ran
 print(len([w for w in seen if "xla_jaxlens_test_unknown" in str(w.message)]),
-      float(np.max(np.abs(exact.phi - table.phi))), float(img.sum()) > 0)
+      float(np.max(np.abs(exact.phi - table.phi))), float(img.sum()), fit.distance)
 """
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=300, cwd=tmp_path)  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    warned, diff, lit = done.stdout.split()
-    assert warned == "1" and float(diff) < 1e-4 and lit == "True"
+
+    def run(mode):
+        done = subprocess.run([sys.executable, "-c", code, mode], capture_output=True,
+                              text=True, timeout=600, cwd=tmp_path)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-3000:]
+        warned, diff, lit, distance = done.stdout.split()
+        return int(warned), float(diff), float(lit), float(distance)
+
+    warned, diff, lit, distance = run("unknown")
+    assert warned == 1 and diff < 1e-4 and lit > 0 and abs(distance / 20.0 - 1) < 0.05
+    assert run("known")[1:] == (diff, lit, distance)  # the unknown option changed nothing
 
 
 def test_a_call_inside_another_trace_is_part_of_it():
