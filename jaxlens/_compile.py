@@ -37,6 +37,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ._util import has_tracer
+
 # XLA's own fusion emitters off: the CPU backend's older loop fusion, whose code for
 # these programs compiles in about half the time and runs as fast.
 _LEGACY_FUSION = {"xla_cpu_use_fusion_emitters": False}
@@ -268,21 +270,24 @@ class _Static:
 
 
 class _Call:
-    """A call's arguments split: the structure and leaves of its arrays, the rest."""
+    """A call's arguments split: the structure and leaves of its arrays, the rest (and
+    the rest made hashable once: `jax.jit`'s static argument and part of the call's
+    signature)."""
 
     def __init__(self, args):
         dynamic, static = eqx.partition(args, eqx.is_array)
         self.leaves, self.tree = jax.tree.flatten(dynamic)
         self.dynamic, self.static = dynamic, static
+        self.hashable = _Static(static)
 
     def traced(self) -> bool:
-        return any(isinstance(x, jax.core.Tracer) for x in self.leaves)
+        return has_tracer(self.leaves)
 
     def signature(self):
         """What decides the call's program in this process (hashable)."""
         avals = tuple((x.shape, x.dtype, bool(getattr(x, "weak_type", False)))
                       for x in self.leaves)  # fmt: skip
-        return self.tree, _Static(self.static), avals
+        return self.tree, self.hashable, avals
 
 
 class _Kept:
@@ -406,7 +411,7 @@ class Program:
     def __call__(self, *args):
         c = _Call(args)
         if c.traced():  # part of a caller's trace
-            return self._jit(nested=True)(c.dynamic, _Static(c.static))
+            return self._jit(nested=True)(c.dynamic, c.hashable)
         return _known_options(lambda: self._call(c))
 
     def _call(self, c: _Call):
@@ -417,7 +422,7 @@ class Program:
             except _NotLowered:
                 entry = None  # the function's own call says why
         if entry is None:
-            out = self._jit()(c.dynamic, _Static(c.static))
+            out = self._jit()(c.dynamic, c.hashable)
         else:
             out = jax.tree.unflatten(entry.out_tree, entry.compiled(*c.leaves))
         self._scheduled.add(c.signature())
@@ -435,7 +440,7 @@ class Program:
         self._scheduled.add(signature)
         entry = self._entry(c, load=False)
         if entry is None:
-            lowered = self._jit().lower(c.dynamic, _Static(c.static))
+            lowered = self._jit().lower(c.dynamic, c.hashable)
             return lowered.compile
         if entry.compiled is not None:
             return None
@@ -450,7 +455,7 @@ class Program:
     def lower(self, *args):
         """The call lowered (`jax.stages.Lowered`), as `jax.jit(...).lower` gives it."""
         c = _Call(args)
-        return self._jit().lower(c.dynamic, _Static(c.static))
+        return self._jit().lower(c.dynamic, c.hashable)
 
 
 def program(fn=None, *, profile: str = "xla", keep: bool = True):

@@ -1,7 +1,6 @@
 """`fit`: any parameter of a scene fitted to an image through the renderer's area-exact
 sampling, with a point-spread function, Gaussian or Poisson noise and a mask."""
 
-import contextlib
 import dataclasses
 import math
 import time
@@ -617,7 +616,7 @@ def fit(
         # where the image shows the shadow's edge and the hole's image stays where the
         # arcs put it: the model's programs then compile on the second core while the
         # start is searched.
-        early = None
+        early = ahead()  # nothing, unless the shapes are known now
         moves = found and bool({"yaw", "pitch"} & set(free))  # the arcs are found again
         centre = (arcs.x_c, arcs.y_c) if found and not moves else (0.0, 0.0)
         edge_seen = arcs.shadow_radius if found else math.nan
@@ -687,7 +686,7 @@ def fit(
             placeholders = (to_device(np.zeros(v)) for v in (shape, n, (n, nt), nt))
             model, r, jac, moved = placeholders
             later.append((_renoised, model, *args[3:6], args[5], r, jac, moved))
-        with ahead(*later), early or contextlib.nullcontext():
+        with ahead(*later), early:
             # --- the hole's image (yaw, pitch) and the source from the arcs, the offset
             # refined by a scan of the loss along their azimuth.
             for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
