@@ -22,11 +22,11 @@ from .arcs import find_arcs, source_offset_from_arcs
 from .fit_result import Fit
 from .model import _chunks, _pixel_edges, _samples_for
 from .noise import (
-    _clipping,
-    _noise_clipped,
-    _noise_level,
     clipped_mean,
     clipped_slope,
+    clipping_bounds,
+    noise_clipped,
+    noise_level,
     white_noise_found,
 )
 from .params import apply, floor_of, in_scene, parameter, split_name, star_of, values_of
@@ -282,7 +282,7 @@ def _gain_estimate(img, valid):
             t, ok = img[r : r + 8, c : c + 8], valid[r : r + 8, c : c + 8]
             if not ok.all():
                 continue
-            var = _noise_level(t) ** 2
+            var = noise_level(t) ** 2
             mean = float(t.mean())
             if var > 0 and mean > 0:
                 ratios.append(mean / var)
@@ -471,9 +471,9 @@ def fit(
     if "psf_sigma" in free and psf_kind != "gaussian":
         raise ValueError("psf_sigma is fitted only for a Gaussian PSF: give psf=<width in px>")
     gray = np.where(valid, img, np.nanmedian(img[valid]))
-    lo, hi = _clipping(gray)
+    lo, hi = clipping_bounds(gray)
     sigma_known = isinstance(noise, (int, float))
-    noise_sigma = float(noise) if sigma_known else _noise_level(gray)
+    noise_sigma = float(noise) if sigma_known else noise_level(gray)
     # An estimated noise must be the image's own: a noiseless (rendered, averaged)
     # image gives errors that measure the misfit, not a measurement's scatter.
     noise_seen = sigma_known or noise == "poisson" or white_noise_found(gray)[0]
@@ -511,7 +511,7 @@ def fit(
             # Values clipped at the format's range: the noise from the flat sky, which
             # clipping below the median leaves intact (second differences of clipped
             # zeros would underestimate it).
-            noise_sigma = _noise_clipped(gray, prof, lo, hi)
+            noise_sigma = noise_clipped(gray, prof, lo, hi)
         start = values_of(scene) | {"psf_sigma": float(psf) if psf_kind == "gaussian"
                                     else 1.0, "ring_flux": 1.0}  # fmt: skip
         psf_px = 0.0 if psf_kind is None else _psf_width(psf)

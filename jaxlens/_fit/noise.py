@@ -46,7 +46,7 @@ def clipped_slope(m, lo, hi, noise):
     return 1.0 - low - high
 
 
-def _noise_level(img):
+def noise_level(img):
     """Per-pixel noise from the median absolute second difference (robust to the ring)."""
     d = img[:, 2:] - 2.0 * img[:, 1:-1] + img[:, :-2]
     if d.size < 8:
@@ -76,7 +76,7 @@ def white_noise_found(img) -> tuple[bool, float]:
     return bool(above_roundoff and 0.5 <= ratio <= 2.0), ratio
 
 
-def _clipping(img):
+def clipping_bounds(img):
     """Bounds at which the stored values were clipped: 0 (1) when at least 0.2 % of the
     pixels sit exactly there, else -inf (inf)."""
     lo = 0.0 if img.min() == 0.0 and np.mean(img == 0.0) > 2e-3 else -math.inf
@@ -84,7 +84,7 @@ def _clipping(img):
     return lo, hi
 
 
-def _noise_clipped(img, prof, lo, hi) -> float:
+def noise_clipped(img, prof, lo, hi) -> float:
     """Per-pixel noise (`prof`: the image's radial profile, `starts._Profile`).
     Unclipped images: the robust second-difference estimate. Clipped
     ones: from the sky well outside the ring (flat there), as the 84th minus the 50th

@@ -15,7 +15,7 @@ from .._compile import program
 from .._util import to_device
 from . import ring_table_data
 from .model import _pixel_edges
-from .noise import _clipping, _noise_clipped, _noise_level, clipped_mean, clipped_slope
+from .noise import clipped_mean, clipped_slope, clipping_bounds, noise_clipped, noise_level
 from .pixels import _bin
 from .spd import solve_spd
 from .table import escape_table, solve_with_slope
@@ -263,7 +263,7 @@ def _profile(img) -> _Profile:
     prof = np.interp(r_mid, r_mid[ok], tot[ok] / np.maximum(cnt[ok], 1))
     smooth = np.convolve(prof, np.ones(3) / 3.0, mode="same")
     smooth[0], smooth[-1] = prof[0], prof[-1]
-    noise = _noise_level(img)
+    noise = noise_level(img)
     i_pk = int(np.argmax(smooth[1:-1])) + 1 if smooth.size > 2 else int(np.argmax(smooth))
     # Sub-bin peak position (parabola through the three bins about the maximum).
     if 0 < i_pk < smooth.size - 1:
@@ -393,8 +393,8 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     sums = (count, np.bincount(group, y), np.bincount(group, y * y))
     # Values stored clipped at 0 (or 1) where the noise crossed them: the model is
     # then the expected clipped value, with the noise of one original pixel.
-    lo, hi = _clipping(img)
-    noise = _noise_clipped(img, prof, lo, hi)
+    lo, hi = clipping_bounds(img)
+    noise = noise_clipped(img, prof, lo, hi)
     clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
     args0 = (radial, tuple(to_device(v, np.float64) for v in sums), to_device(scale), clip0,
              to_device(float(star_sigma is None)))  # fmt: skip
