@@ -86,7 +86,6 @@ _MODULES = {
         "ArcGuess",
         "Fit",
         "FitsImage",
-        "RingFit",
         "clipped_mean",
         "convolve_psf",
         "distance_in_metres",

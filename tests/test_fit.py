@@ -475,7 +475,7 @@ def test_recovery_on_rendered_rings(d, fov, sig, floor, given, noise):
     ):
         assert abs(got / true - 1) < 0.01
         assert abs(got - true) < 4 * err
-    assert fit.noise == pytest.approx(noise, rel=0.1)
+    assert fit.residual_noise == pytest.approx(noise, rel=0.1)
     assert "no pixel noise" not in fit.message and fit.valid
 
 

@@ -38,7 +38,6 @@ from .psf import (
     image_otf as image_otf,
     psf_margin as psf_margin,
 )
-from .result import RingFit as RingFit
 from .ring import fit_ring as fit_ring
 from .table import einstein_ring_angle as einstein_ring_angle, escape_table as escape_table
 from .units import (

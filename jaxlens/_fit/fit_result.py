@@ -1,5 +1,5 @@
-"""The result of a general fit (`Fit`): values, standard errors, correlations, the
-residual image and the verdict."""
+"""The result of a fit (`Fit`, of `fit` and `fit_ring`): values, standard errors,
+correlations, the residual image and the verdict."""
 
 import dataclasses
 import math
@@ -12,7 +12,7 @@ from .units import mass_from_distance, schwarzschild_radius_m
 
 @dataclasses.dataclass(frozen=True)
 class Fit:
-    """Result of `fit`.
+    """Result of `fit` and of `fit_ring`.
 
     **Fields:**
     - `scene`: the fitted `Scene` (the model, its free parameters at their values).
@@ -22,7 +22,7 @@ class Fit:
       further star's under its index, `source_lon_2`, ...).
     - `covariance`, `correlation`: of the free parameters (physical units), from the
       Gauss-Newton curvature (the Laplace approximation) at the optimum.
-    - `start`: the starting values.
+    - `start`: the starting values, by parameter name (the units of `values`).
     - `noise`: `"gaussian"` or `"poisson"`; `noise_sigma`: the per-pixel noise of the
       image (data units; Gaussian), `gain` (counts per data unit; Poisson).
     - `chi2_dof`: the residuals' sum of squares per degree of freedom, in units of the
@@ -35,7 +35,8 @@ class Fit:
       re-estimated between them).
     - `converged`: the solve succeeded, the curvature is finite and invertible, no
       parameter sits at a bound; `degenerate`: some parameters cannot be separated by
-      the image (named in `message`); `message`: "" when all is well, else every check
+      the image (named in `message`; from `fit_ring` also when not converged, as a
+      ring's D and FOV are then not fixed); `message`: "" when all is well, else every check
       that failed (solver, bounds, degeneracy, residuals against the noise, nuisances
       out of their physical range, no pixel noise found).
     - `valid` (property): converged, not degenerate and no message: the values and
@@ -44,9 +45,18 @@ class Fit:
       the multiple correlation of one with the other free parameters (NaN when D or
       FOV is held); above 1e9 the curvature is singular.
     - `seconds`: wall time, compile included.
-    - `transfer`: how a file's values were read: `"srgb"` (8/16-bit, tagged sRGB or
-      untagged: decoded to linear), `"linear"` (float files, files tagged linear,
-      FITS: as stored); `None` for an array.
+    - `transfer`: how a file's values were read: `"srgb"` (8/16-bit, decoded from sRGB
+      to linear), `"linear"` (as stored; integer files normalised to [0, 1]); `None`
+      for an array. `transfer_reason`: why that decoding ("tagged sRGB", "untagged:
+      both decodings fitted, linear passed the residual test", ...; "" when none was
+      given).
+    - `residual_noise` (property): the residuals' standard deviation per compared pixel
+      (data units), $\sqrt{\chi^2/\mathrm{dof}}$ times `noise_sigma`; NaN under Poisson
+      noise, whose level varies with the model.
+
+    Attribute shortcuts: `fit.<name>` and `fit.<name>_err` for every parameter in
+    `values` (the error of one held fixed is 0), and `fit.<name>_deg`,
+    `fit.<name>_deg_err` for an angle (degrees).
     """
 
     scene: object
@@ -74,25 +84,35 @@ class Fit:
     message: str
     seconds: float
     transfer: str | None = None
+    transfer_reason: str = ""
 
     def __getattr__(self, name):
         # fit.distance, fit.distance_err, fit.fov_deg, ...
         values, errors = self.__dict__["values"], self.__dict__["errors"]
         if name in values:
             return values[name]
-        if name.endswith("_err") and name[:-4] in errors:
-            return errors[name[:-4]]
+        if name.endswith("_err") and name[:-4] in values:
+            return errors.get(name[:-4], 0.0)  # held fixed: no error
         for suffix in ("_deg", "_deg_err"):
             base = name[: -len(suffix)] if name.endswith(suffix) else None
             if base in values and is_angle(base):
-                src = values if suffix == "_deg" else errors
-                return math.degrees(src[base])
+                v = values[base] if suffix == "_deg" else errors.get(base, 0.0)
+                return math.degrees(v)
         raise AttributeError(name)
 
     @property
     def valid(self) -> bool:
         """Converged, not degenerate, and every check passed (`message` is empty)."""
         return bool(self.converged and not self.degenerate and not self.message)
+
+    @property
+    def residual_noise(self) -> float:
+        """The residuals' standard deviation per compared pixel (data units): the noise
+        the fit saw, $\sqrt{\chi^2/\mathrm{dof}}$ times `noise_sigma`. NaN under
+        Poisson noise (its level varies with the model: see `gain` and `chi2_dof`)."""
+        if self.noise != "gaussian":
+            return math.nan
+        return math.sqrt(self.chi2_dof) * self.noise_sigma
 
     def distance_m(self, mass_msun: float) -> tuple[float, float]:
         """Camera distance in metres, and its standard error, for a hole of `mass_msun`."""
@@ -117,14 +137,18 @@ class Fit:
             valid=self.valid, converged=self.converged, degenerate=self.degenerate,
             message=self.message,
             noise=self.noise, noise_sigma=self.noise_sigma, gain=self.gain,
-            chi2_dof=self.chi2_dof, n_pixels=self.n_pixels, block=self.block,
-            supersample=self.supersample, result=self.result_name,
-            num_steps=self.num_steps, seconds=self.seconds, transfer=self.transfer,
+            chi2_dof=self.chi2_dof, residual_noise=self.residual_noise,
+            n_pixels=self.n_pixels, block=self.block, supersample=self.supersample,
+            result=self.result_name, num_steps=self.num_steps,
+            variance_inflation=self.variance_inflation, seconds=self.seconds,
+            transfer=self.transfer, transfer_reason=self.transfer_reason,
         )  # fmt: skip
         return out
 
     def summary(self) -> str:
-        """A table of the parameters with their standard errors, and the verdict."""
+        """A table of the parameters with their standard errors, the verdict, how a
+        file's values were read (`transfer`, `transfer_reason`) and the message; the
+        text report of `jaxlens fit`."""
         lines = []
         for name, v in self.values.items():
             unit = parameter(name).unit
@@ -132,17 +156,24 @@ class Fit:
             if is_angle(name):
                 v, e, unit = math.degrees(v), math.degrees(e), "deg"
             tag = "" if name in self.names else "  (fixed)"
-            lines.append(f"{name:<12} = {v:.6g} +- {e:.2g} {unit}{tag}")
+            lines.append(f"{name:<12} = {v:.6g} +- {e:.2g}{f' {unit}' if unit else ''}{tag}")
         verdict = "converged" if self.converged else "NOT converged"
         if self.degenerate:
             verdict += ", degenerate"
         if self.converged and not self.valid:
             verdict += ", FLAGGED (not a valid measurement)"
+        noise = ""
+        if self.noise == "gaussian":
+            noise = f" (residuals {self.residual_noise:.3g} per pixel)"
         lines.append(
-            f"{verdict}; chi2/dof {self.chi2_dof:.3g}; {self.n_pixels} pixels (bins of "
-            f"{self.block}), k = {self.supersample}; {self.seconds:.1f} s"
-            + ("; file read as sRGB, decoded to linear" if self.transfer == "srgb" else "")
+            f"{verdict}; chi2/dof {self.chi2_dof:.3g}{noise}; {self.n_pixels} pixels (bins "
+            f"of {self.block}), k = {self.supersample}; {self.num_steps} steps; "
+            f"{self.seconds:.1f} s"
         )
+        if self.transfer is not None:
+            how = "decoded from sRGB to linear" if self.transfer == "srgb" else "as stored"
+            why = f"; {self.transfer_reason}" if self.transfer_reason else ""
+            lines.append(f"transfer     = {self.transfer} ({how}{why})")
         if self.message:
             lines.append(self.message)
         return "\n".join(lines)

@@ -1,167 +1,8 @@
-"""The result of a ring fit (`RingFit`) and the diagnosis of a degenerate or failed
-fit."""
+"""The verdict of a fit: the solver's result by name, and whether an image fixes a
+ring's D and FOV (`ring_verdict`)."""
 
-import math
-
-import equinox as eqx
 import numpy as np
 import optimistix as optx
-
-from .units import mass_from_distance, schwarzschild_radius_m
-
-
-class RingFit(eqx.Module):
-    """Result of `fit_ring`.
-
-    **Fields:**
-    - `distance`, `distance_err`: camera distance and its standard error (units of R_S).
-    - `fov`, `fov_err`: horizontal field of view (radians); `fov_deg`, `fov_deg_err`
-      are the same in degrees.
-    - `brightness`, `floor` (+ `_err`): peak star radiance $A$ and sky level, in the
-      image's units (linear, [0, 1] for integer formats).
-    - `sigma`, `sigma_err`: star width (radians; `sigma_err` is 0 when it was given).
-    - `ring_flux`, `ring_flux_err`: the flux of the relativistic rings (orders 1 and 2)
-      relative to the exact area average, a nuisance factor with a prior N(1, 1): the
-      rings are a few thousandths of a pixel wide and renderers that point-sample
-      pixels alias them; ~1 for an exactly area-averaged image.
-    - `covariance`: of (D, fov, [sigma,] A, floor) in those units; `correlation`.
-    - `names`: the parameter names in that order.
-    - `noise`: residual standard deviation per pixel of the fitted (binned) image.
-    - `n_pixels`, `block`, `supersample`: pixels fitted, binning, k.
-    - `result`: the optimistix `RESULTS` of the solve (`result_name`: its name);
-      `num_steps`: its steps.
-    - `converged`: optimistix succeeded and the curvature is finite and invertible.
-    - `degenerate`: the data do not fix D and FOV separately, or the solve did not
-      converge (see `message`); `variance_inflation`: the largest of
-      $1/(1 - R^2)$ over D, FOV (and sigma), $R$ the multiple correlation of one with
-      the others (above 1e9: degenerate).
-    - `message`: human-readable diagnosis ("" when all is well).
-    - `valid` (property): converged, not degenerate and no message: the values and
-      errors are a measurement; anything else is flagged, not one to report.
-    - `seconds`: wall time of the fit, compile included.
-    - `transfer`: how a file's values were read (`read_observation`): `"srgb"` decoded
-      to linear, `"linear"` as stored; `None` for an array.
-    """
-
-    distance: float
-    distance_err: float
-    fov: float
-    fov_err: float
-    brightness: float
-    brightness_err: float
-    floor: float
-    floor_err: float
-    sigma: float
-    sigma_err: float
-    ring_flux: float
-    ring_flux_err: float
-    covariance: np.ndarray
-    correlation: np.ndarray
-    names: tuple
-    noise: float
-    n_pixels: int
-    block: int
-    supersample: int
-    result: optx.RESULTS
-    result_name: str
-    num_steps: int
-    converged: bool
-    degenerate: bool
-    variance_inflation: float
-    message: str
-    seconds: float
-    start: tuple
-    transfer: str | None = None
-
-    @property
-    def valid(self) -> bool:
-        """Converged, not degenerate, and every check passed (`message` is empty)."""
-        return bool(self.converged and not self.degenerate and not self.message)
-
-    @property
-    def fov_deg(self) -> float:
-        """Horizontal field of view, degrees."""
-        return math.degrees(self.fov)
-
-    @property
-    def fov_deg_err(self) -> float:
-        """Standard error of the field of view, degrees."""
-        return math.degrees(self.fov_err)
-
-    @property
-    def sigma_deg(self) -> float:
-        """Star width, degrees."""
-        return math.degrees(self.sigma)
-
-    def distance_m(self, mass_msun: float) -> tuple[float, float]:
-        """Camera distance in metres and its standard error, for a hole of `mass_msun`
-        solar masses (taken as exact)."""
-        rs = float(schwarzschild_radius_m(mass_msun))
-        return self.distance * rs, self.distance_err * rs
-
-    def mass_msun(self, distance_m: float) -> tuple[float, float]:
-        """Mass of the hole in solar masses and its standard error, for a camera
-        distance of `distance_m` metres (taken as exact)."""
-        m = float(mass_from_distance(self.distance, distance_m))
-        return m, m * self.distance_err / self.distance
-
-    def to_dict(self) -> dict:
-        """Plain-Python summary (JSON-serialisable)."""
-        return {
-            "distance": self.distance,
-            "distance_err": self.distance_err,
-            "fov": self.fov,
-            "fov_err": self.fov_err,
-            "fov_deg": self.fov_deg,
-            "fov_deg_err": self.fov_deg_err,
-            "brightness": self.brightness,
-            "brightness_err": self.brightness_err,
-            "floor": self.floor,
-            "floor_err": self.floor_err,
-            "sigma": self.sigma,
-            "sigma_err": self.sigma_err,
-            "sigma_deg": self.sigma_deg,
-            "sigma_deg_err": math.degrees(self.sigma_err),
-            "ring_flux": self.ring_flux,
-            "ring_flux_err": self.ring_flux_err,
-            "noise": self.noise,
-            "n_pixels": self.n_pixels,
-            "block": self.block,
-            "supersample": self.supersample,
-            "num_steps": self.num_steps,
-            "result": self.result_name,
-            "valid": self.valid,
-            "converged": self.converged,
-            "degenerate": self.degenerate,
-            "variance_inflation": self.variance_inflation,
-            "message": self.message,
-            "seconds": self.seconds,
-        }
-
-    def summary(self) -> str:
-        """A readable report."""
-        lines = [
-            f"distance  D   = {self.distance:.6g} +- {self.distance_err:.2g} R_S",
-            f"field of view = {self.fov_deg:.6g} +- {self.fov_deg_err:.2g} deg",
-            f"star sigma    = {self.sigma_deg:.4g}"
-            + (f" +- {math.degrees(self.sigma_err):.2g} deg" if self.sigma_err else " deg (given)"),
-            f"brightness A  = {self.brightness:.4g} +- {self.brightness_err:.2g}",
-            f"floor         = {self.floor:.4g} +- {self.floor_err:.2g}",
-            f"ring flux     = {self.ring_flux:.3g} +- {self.ring_flux_err:.2g} "
-            "(relativistic rings / exact)",
-            f"noise         = {self.noise:.3g} per pixel ({self.n_pixels} pixels, "
-            f"bin {self.block}, {self.supersample}x{self.supersample} samples)",
-            f"solver        = {self.num_steps} steps, "
-            + ("converged" if self.converged else "NOT converged")
-            + f", {self.seconds:.1f} s"
-            + ("; file read as sRGB, decoded to linear" if self.transfer == "srgb" else ""),
-        ]
-        if self.degenerate:
-            lines.append(f"DEGENERATE: {self.message}")
-        elif self.message:
-            lines.append(f"FLAGGED (not a valid measurement): {self.message}")
-        return "\n".join(lines)
-
 
 # Degeneracy thresholds: a relative standard error of D or FOV above 10 % means the
 # image does not pin them down (the goal is 1 %); a variance inflation above 1e9
@@ -180,7 +21,9 @@ _RING_SIGNIFICANCE = 10.0
 _EDGE_SIGNIFICANCE = 5.0
 
 
-def _result_name(result) -> str:
+def result_name(result) -> str:
+    """The name of an optimistix `RESULTS` value ("successful", "max_steps_reached",
+    ...; "failed" for one not listed)."""
     for name in (
         "successful",
         "nonlinear_max_steps_reached",
@@ -196,7 +39,7 @@ def _result_name(result) -> str:
     return "failed"
 
 
-def _ring_verdict(names, values, errors, corr, shadow_seen: bool):
+def ring_verdict(names, values, errors, corr, shadow_seen: bool):
     """Whether a fit of D and FOV (`names` holding both) is degenerate, as a ring fixes
     them: D and FOV loose (relative errors above 10 %) or their curvature singular
     (variance inflation of D, FOV and sigma above 1e9); or, with sigma free, neither
@@ -249,3 +92,8 @@ def _ring_verdict(names, values, errors, corr, shadow_seen: bool):
             vif,
         )
     return False, "", vif
+
+
+# (old names, used by general.py until it moves)
+_result_name = result_name
+_ring_verdict = ring_verdict

@@ -1,20 +1,24 @@
 """`fit_ring`: the general fit's preset for an Einstein ring of a star behind the hole."""
 
+import dataclasses
 import math
 
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
 from .._util import host_driver
+from .fit_result import Fit
 from .general import fit
 from .pixels import _as_gray
-from .result import RingFit
 from .starts import _profile
+
+TRANSFERS = ("auto", "srgb", "linear")
 
 
 def fit_ring(
     image,
     *,
+    transfer: str = "auto",
     star_sigma: float | None = None,
     init: dict | None = None,
     supersample: int | None = None,
@@ -24,7 +28,7 @@ def fit_ring(
     rtol: float = 1e-6,
     atol: float | None = None,
     max_steps: int = 100,
-) -> RingFit:
+) -> Fit:
     """Fit the camera distance and field of view to an image of an Einstein ring.
 
     A preset of `fit`: the model is a Gaussian star exactly behind the hole over a
@@ -42,9 +46,13 @@ def fit_ring(
 
     **Arguments:**
     - `image`: array `(H, W)` or `(H, W, C)` of linear intensity (channels averaged),
-      or a path read with `read_observation` (linear intensity: sRGB-tagged or
-      untagged 8/16-bit files decoded, float and linear-tagged files as stored;
-      alpha left out).
+      or a path, read by `fit` (FITS through astropy; other formats as linear
+      intensity, alpha left out, decoded as `transfer` says).
+    - `transfer`: how an 8/16-bit file's values are decoded: `"srgb"` (from sRGB to
+      linear), `"linear"` (as stored, normalised to [0, 1]), or `"auto"` (the file's
+      tag; an untagged file is fitted under both and the decoding whose residuals
+      pass the noise test kept). Float files, FITS and arrays are linear.
+      `Fit.transfer` and `Fit.transfer_reason` say which and why.
     - `star_sigma`: the star's Gaussian width (radians) when known; fitted otherwise.
     - `init`: optional starting values, a dict with `distance` (R_S) and `fov`
       (radians) or `fov_deg`, optionally `sigma` (radians).
@@ -54,15 +62,24 @@ def fit_ring(
     - `knots`: of the escape-angle table (`escape_table`, a `RayMap`).
     - `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings (`fit`'s).
 
-    **Returns:** a `RingFit`. Raises `ValueError` for an unreadable, non-finite or
-    blank image, or one with no ring, and a `TypeError` under `jit`, `vmap` or `grad`
-    (it runs on the host: differentiate `ring_image` instead).
+    **Returns:** the `Fit` of `fit`, with `degenerate` also set when it did not
+    converge (D and FOV are then not fixed). Raises `ValueError` for an unreadable,
+    non-finite or blank image, one with no ring, or a `transfer` not in "auto",
+    "srgb", "linear"; a `TypeError` under `jit`, `vmap` or `grad` (it runs on the
+    host: differentiate `ring_image` instead).
     """
     host_driver("fit_ring", "differentiate the model (jaxlens.ring_image) instead", image,
                 star_sigma, init)  # fmt: skip
-    img, transfer = _as_gray(image)
+    if transfer not in TRANSFERS:
+        raise ValueError(f"transfer={transfer!r} is not valid: expected one of "
+                         + ", ".join(map(repr, TRANSFERS)))  # fmt: skip
     if star_sigma is not None and not (0 < star_sigma < math.pi):
         raise ValueError(f"star_sigma={star_sigma!r} must be in (0, pi) radians")
+    # A ring's own checks, before any compiling: a finite, non-blank image of 8 pixels a
+    # side at least whose radial profile about the centre shows a ring (`fit` also takes
+    # arcs). The values are `fit`'s to read and decode; these checks need only their
+    # shape, which a monotonic decoding keeps.
+    img, _ = _as_gray(image)
     prof = _profile(img)
     if not prof.peak > 8.0 * prof.peak_noise:
         raise ValueError(
@@ -75,41 +92,11 @@ def fit_ring(
     scene = Scene(Camera(20.0, 1.0, 8, 8), sky)
     free = ("distance", "fov") + (("sigma",) if fit_sigma else ())
     free += ("brightness", "floor", "ring_flux")
-    f = fit(scene, img, free=free, init=init, supersample=supersample, block=block,
-            max_pixels=max_pixels, knots=knots, rtol=rtol, atol=atol,
-            max_steps=max_steps)  # fmt: skip
-    v, e = f.values, f.errors
-    # The solver's verdict first, then what the image cannot fix.
-    converged = f.result_name == "successful" and bool(all(math.isfinite(x) for x in e.values()))
-    message = f.message
-    return RingFit(
-        distance=v["distance"],
-        distance_err=e["distance"],
-        fov=v["fov"],
-        fov_err=e["fov"],
-        brightness=v["brightness"],
-        brightness_err=e["brightness"],
-        floor=v["floor"],
-        floor_err=e["floor"],
-        sigma=v["sigma"],
-        sigma_err=e.get("sigma", 0.0),
-        ring_flux=v["ring_flux"],
-        ring_flux_err=e["ring_flux"],
-        covariance=f.covariance,
-        correlation=f.correlation,
-        names=f.names,
-        noise=math.sqrt(f.chi2_dof) * f.noise_sigma,
-        n_pixels=f.n_pixels,
-        block=f.block,
-        supersample=f.supersample,
-        result=f.result,
-        result_name=f.result_name,
-        num_steps=f.num_steps,
-        converged=converged,
-        degenerate=f.degenerate or not converged,
-        variance_inflation=f.variance_inflation,
-        message=message,
-        seconds=f.seconds,
-        start=(f.start["distance"], f.start["fov"], f.start["sigma"]),
-        transfer=transfer,
-    )
+    # "auto" is `fit`'s default (and it has no `transfer` argument before it decodes
+    # untagged files both ways): given only when chosen.
+    chosen = {} if transfer == "auto" else {"transfer": transfer}
+    f = fit(scene, image, free=free, init=init, supersample=supersample, block=block,
+            max_pixels=max_pixels, knots=knots, rtol=rtol, atol=atol, max_steps=max_steps,
+            **chosen)  # fmt: skip
+    # A ring fit that did not converge fixes neither D nor FOV.
+    return dataclasses.replace(f, degenerate=f.degenerate or not f.converged)
