@@ -106,10 +106,9 @@ def register(sub):
         help="fit distance, field of view and source position to an image of a lensed star",
         description="Fit the camera distance (units of R_S), horizontal field of view and the "
         "star's position to an image of a lensed Gaussian star: a ring, or arcs from a star "
-        "off the axis (pixel values as linear intensity: 8/16-bit files tagged sRGB or "
-        "untagged, as PNG and JPEG are by default, decoded from sRGB; float files and files "
-        "tagged linear as stored; channels averaged; FITS through astropy, its WCS fixing "
-        "the field of view).",
+        "off the axis (pixel values as linear intensity: 8/16-bit files decoded as "
+        "--transfer says; float files as stored; channels averaged; FITS through astropy, "
+        "its WCS fixing the field of view).",
     )
     p.add_argument("images", nargs="+", metavar="image",
                    help="the image (PNG, EXR, TIFF, FITS, ...); several are fitted in turn "
@@ -138,6 +137,14 @@ def register(sub):
         type=str,
         default=None,
         help="Poisson: counts per unit of pixel value, from 1e-30 to 1e30 (estimated if not given)",
+    )
+    p.add_argument(
+        "--transfer",
+        choices=("auto", "srgb", "linear"),
+        default="auto",
+        help="how an 8/16-bit file's values are decoded: srgb (from sRGB to linear), linear "
+        "(as stored), auto (the default: the file's tag, and for an untagged file both "
+        "decodings tried, the one whose residuals pass the noise test kept)",
     )
     p.add_argument("--mask", default=None, help="mask image: pixels > 0.5 are left out")
     p.add_argument(
@@ -209,6 +216,8 @@ def run(args):
     gain = None
     if args.gain is not None:
         gain = _positive("--gain", "counts a unit of pixel value")(args.gain)
+    # "auto" is the fit's default: given only when chosen.
+    transfer = {} if args.transfer == "auto" else {"transfer": args.transfer}
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
     images = args.images
     several = len(images) > 1
@@ -222,7 +231,7 @@ def run(args):
         cli.status(f"fitting {image}{which} (compiling on first use)")
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
-                            mask=args.mask, init=init or None)  # fmt: skip
+                            mask=args.mask, init=init or None, **transfer)  # fmt: skip
         except (ValueError, OSError) as e:
             if not several:
                 raise
@@ -262,17 +271,18 @@ def run(args):
 
 
 def _report(args, image, fit, mass, dist_m) -> str:
-    """One image's result: the readable report, or one line of JSON."""
+    """One image's result: the readable report (`Fit.summary()` and the physical
+    scale), or one line of JSON (`Fit.to_dict()` and the same)."""
     out = {"image": image, **fit.to_dict()}
     lines = [f"fit of {image}", fit.summary()]
     if mass is not None:
         d_m, d_m_err = fit.distance_m(mass)
         out.update(mass_msun=mass, distance_m=d_m, distance_m_err=d_m_err)
-        lines.append(f"distance      = {d_m:.6g} +- {d_m_err:.2g} m (mass {mass:g} M_sun)")
+        lines.append(f"{'distance':<12} = {d_m:.6g} +- {d_m_err:.2g} m (mass {mass:g} M_sun)")
     if dist_m is not None:
         m, m_err = fit.mass_msun(dist_m)
         out.update(distance_m=dist_m, mass_msun=m, mass_msun_err=m_err)
-        lines.append(f"mass          = {m:.6g} +- {m_err:.2g} M_sun (distance {dist_m:g} m)")
+        lines.append(f"{'mass':<12} = {m:.6g} +- {m_err:.2g} M_sun (distance {dist_m:g} m)")
     if args.json:
         return json.dumps(_finite(out))
     return "\n".join(lines) + ("\n" if len(args.images) > 1 else "")

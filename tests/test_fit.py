@@ -517,7 +517,12 @@ def test_png_round_trip(tmp_path, bits):
     stored = write_png(path, noisy(modelled(d, fov, sig, 0.1), 0.01, seed=bits), bits)
     np.testing.assert_allclose(read_observation(path), stored, atol=1e-6)
     fit = fit_ring(path, star_sigma=math.radians(sig))
+    assert isinstance(fit, jl.Fit)  # the general fit's result, not a copy of it
     assert fit.converged and not fit.degenerate and fit.transfer == "linear"
+    # sigma given, so held: its error is 0 (exactly, not a tiny number), as in to_dict.
+    assert fit.sigma_err == fit.sigma_deg_err == fit.to_dict()["sigma_err"] == 0.0
+    # The given width as the star holds it (float32 outside the fit: 6e-8 relative).
+    assert fit.sigma_deg == pytest.approx(sig, rel=1e-7) and "sigma" not in fit.names
     assert abs(fit.distance / d - 1) < 0.01 and abs(fit.fov_deg / fov - 1) < 0.01
     assert abs(fit.distance - d) < 4 * fit.distance_err
     assert fit.supersample == K
@@ -544,6 +549,7 @@ def test_the_librarys_own_png_is_decoded_and_fits(tmp_path):
     np.testing.assert_allclose(got, jl.read_image(path)[..., :3].mean(-1), atol=1e-6)
     fit = fit_ring(path, star_sigma=math.radians(sig))
     assert fit.converged and not fit.degenerate and fit.transfer == "srgb"
+    assert re.search(r"^transfer\s+= srgb \(decoded from sRGB to linear", fit.summary(), re.M)
     assert abs(fit.distance - d) < 4 * fit.distance_err and abs(fit.fov_deg / fov - 1) < 0.01
     assert abs(fit.floor - 0.1) < 0.01
 
@@ -665,6 +671,8 @@ def test_bad_images(tmp_path):
         fit_ring(bad)
     with pytest.raises(ValueError, match="does not exist"):
         fit_ring(tmp_path / "missing.png")
+    with pytest.raises(ValueError, match=r"transfer='gamma' is not valid: expected one of 'auto'"):
+        fit_ring(modelled(20.0, 60.0, 1.5, 0.1), transfer="gamma")
 
 
 # ----------------------------------------------------------------------------- CLI
@@ -686,6 +694,7 @@ def test_cli(tmp_path, capsys, monkeypatch):
     assert len(list(kept.glob("*.executable"))) == 3 and not list(kept.glob("*.refused"))
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["converged"] is True and out["transfer"] == "linear"
+    assert isinstance(out["transfer_reason"], str)
     assert out["distance"] == pytest.approx(20.0, rel=0.01)
     assert out["fov_deg"] == pytest.approx(60.0, rel=0.01)
     assert out["distance_m"] == pytest.approx(out["distance"] * 10 * 2953.25, rel=1e-6)
@@ -713,6 +722,13 @@ def test_cli(tmp_path, capsys, monkeypatch):
     m = float(re.search(r"^mass\s+= (\S+) \+- \S+ M_sun \(distance 600000 m\)", text,
                         re.M).group(1))  # fmt: skip
     assert m == pytest.approx(6e5 / (d * 2953.25), rel=2e-5)
+    # The text report is Fit.summary()'s: the file's decoding on a line of its own.
+    assert re.search(r"^transfer\s+= linear \(as stored", text, re.M)
+
+    # --transfer takes the three decodings only (argparse: its usage line, exit 2).
+    with pytest.raises(SystemExit) as e:
+        cli.main(["fit", str(path), "--transfer", "gamma"])
+    assert e.value.code == 2 and "--transfer: invalid choice: 'gamma'" in capsys.readouterr().err
 
     for argv in (["fit", str(blank)], ["fit", str(tmp_path / "none.png")],
                  ["fit", str(path), "--star-sigma-deg", "-1"],

@@ -51,7 +51,7 @@ class Fit:
       both decodings fitted, linear passed the residual test", ...; "" when none was
       given).
     - `residual_noise` (property): the residuals' standard deviation per compared pixel
-      (data units), $\sqrt{\chi^2/\mathrm{dof}}$ times `noise_sigma`; NaN under Poisson
+      (data units), $\\sqrt{\\chi^2/\\mathrm{dof}}$ times `noise_sigma`; NaN under Poisson
       noise, whose level varies with the model.
 
     Attribute shortcuts: `fit.<name>` and `fit.<name>_err` for every parameter in
@@ -108,7 +108,7 @@ class Fit:
     @property
     def residual_noise(self) -> float:
         """The residuals' standard deviation per compared pixel (data units): the noise
-        the fit saw, $\sqrt{\chi^2/\mathrm{dof}}$ times `noise_sigma`. NaN under
+        the fit saw, $\\sqrt{\\chi^2/\\mathrm{dof}}$ times `noise_sigma`. NaN under
         Poisson noise (its level varies with the model: see `gain` and `chi2_dof`)."""
         if self.noise != "gaussian":
             return math.nan
