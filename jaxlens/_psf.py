@@ -20,17 +20,28 @@ amount wrapped in). For a Gaussian of width $\\sigma$ that mass is
 $1 - (1 - 2Q(\\mathrm{pad}/\\sigma))^2 \\approx 4 Q(\\mathrm{pad}/\\sigma)$, $Q$ the normal
 tail: 1.3e-4 at `pad` = $4\\sigma$ (`psf_margin`), 1.1e-6 at $5\\sigma$, 4e-9 at $6\\sigma$;
 in practice much less, since the light at the edges is spread over a whole row.
+
+The objects. `GaussianPSF(sigma_px)` and `ImagePSF(image)` (subclasses of `AbstractPSF`)
+carry a PSF with its margin: `otf(shape)`, `margin_px`, `width_px` and `apply(image)`
+(blur an image rendered on the margin, crop it). `render(scene, psf=...)` renders the
+frame with the margin and applies them, so the renderer draws what the fit compares
+with an image. A margin over `MAX_MARGIN_PX` (4096 pixels) or a frame with its margin
+over `MAX_PADDED_PIXELS` (2**26 pixels) is refused, naming the size asked for: a width
+in arcseconds taken for pixels would otherwise ask for terabytes.
 """
 
+import abc
 import math
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from ._util import as_float, concrete
+from ._messages import real_array
+from ._util import as_float, concrete, has_tracer
 
 _CENTRES = ("middle", "centroid")
 
@@ -310,3 +321,278 @@ def psf_margin(
         c = float(np.sum(np.arange(n) * np.sum(value, axis=1 - axis)) / total)
         radius = max(radius, c, n - 1 - c)
     return int(math.ceil(radius - 1e-9))
+
+
+# --- PSF objects ----------------------------------------------------------------------
+
+# The largest margin a PSF may ask for, in pixels on every side: 4 sigma of a Gaussian
+# of 1024 pixels. A wider PSF is a mistake of units (arcseconds or degrees given as
+# pixels), and its margin alone would make a frame of >= 8193 x 8193 pixels.
+MAX_MARGIN_PX = 4096
+# The largest frame a PSF is applied to, margin included: 2**26 pixels (8192 x 8192),
+# 512 MiB a channel in float64 and as much again for its Fourier transform.
+MAX_PADDED_PIXELS = 2**26
+
+
+def _count(n: float) -> str:
+    """A count of pixels as a message shows it: 8,193 (whole, with commas) up to 1e15,
+    then 4e+300."""
+    return f"{n:,.0f}" if n < 1e15 else f"{n:.3g}"
+
+
+def _size(pixels: float) -> str:
+    """The memory of `pixels` float32 RGB pixels (a render's output), in words."""
+    b = 12.0 * float(pixels)
+    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB"):
+        if b < 1024 or unit == "EiB":
+            return f"{b:.0f} {unit}" if unit == "bytes" else f"{b:.3g} {unit}"
+        b /= 1024
+    raise AssertionError("unreachable")
+
+
+def _margin_of(sigma: float) -> int | float:
+    """`psf_margin`'s margin of a Gaussian of width `sigma` (pixels), ceil(4 sigma), or
+    the float 4 sigma where that is beyond `MAX_MARGIN_PX` (for the message only: an
+    int of 4e300 pixels is no use, and 4 sigma may overflow to inf)."""
+    return psf_margin(sigma) if 4.0 * sigma <= MAX_MARGIN_PX else 4.0 * sigma
+
+
+def _check_margin(who: str, margin, hint: str) -> int:
+    """`margin` (pixels) as an int in [0, MAX_MARGIN_PX], or a ValueError naming the
+    frame it would ask for (a float margin only ever comes too large, from
+    `_margin_of`); `hint` ends the message."""
+    if isinstance(margin, float) and margin > MAX_MARGIN_PX:
+        m = margin
+    elif isinstance(margin, bool) or not isinstance(margin, int | np.integer):
+        raise ValueError(f"{who}: margin_px={margin!r} must be a whole number of pixels >= 0")
+    else:
+        m = int(margin)
+    if m < 0:
+        raise ValueError(f"{who}: margin_px={m} must be >= 0 (pixels)")
+    if m > MAX_MARGIN_PX:
+        side = 2.0 * m + 1.0
+        raise ValueError(
+            f"{who} needs a margin of {_count(m)} pixels on every side of the frame: even "
+            f"a 1-pixel image would be rendered on {_count(side)} x {_count(side)} pixels "
+            f"({_size(side * side)} of float32 RGB); at most {MAX_MARGIN_PX:,} pixels{hint}"
+        )
+    return m
+
+
+class AbstractPSF(eqx.Module):
+    """A point-spread function on the pixel grid: what blurs a rendered image into what
+    a detector records. A PSF is applied to an image rendered with a margin of
+    `margin_px` pixels on every side (`render(scene, psf=...)` does that), by FFT, and
+    the central crop is returned (module docstring: why the margin, and its error).
+
+    The interface: `otf(shape)` (the optical transfer function, `rfft2` layout),
+    `margin_px` (static: the margin a render needs), `width_px` (the Gaussian-equivalent
+    width) and `apply(image)`; `padded_shape(shape)` gives the frame a render draws.
+    Concrete classes: `GaussianPSF`, `ImagePSF`.
+    """
+
+    margin_px: eqx.AbstractVar[int]
+
+    @abc.abstractmethod
+    def otf(self, shape: tuple[int, int]) -> Array:
+        """The OTF for an array of `shape` = `(rows, columns)` pixels, margin included:
+        the PSF's discrete Fourier transform, unit sum, centred at pixel (0, 0), shape
+        `(rows, columns // 2 + 1)` (`jnp.fft.rfft2`'s layout)."""
+
+    @property
+    @abc.abstractmethod
+    def width_px(self) -> Float[Array, ""]:
+        """The Gaussian-equivalent width, in pixels: the standard deviation along one
+        axis of a Gaussian of the same second moment."""
+
+    def padded_shape(self, shape: tuple[int, int]) -> tuple[int, int]:
+        """The frame to render for an image of `shape` = `(rows, columns)` pixels: the
+        image with `margin_px` pixels on every side. Raises `ValueError` when that frame
+        has more than `MAX_PADDED_PIXELS` = 2**26 pixels (8192 x 8192), naming it."""
+        h, w = _shape2(shape)
+        m = self.margin_px
+        hp, wp = h + 2 * m, w + 2 * m
+        if hp * wp > MAX_PADDED_PIXELS:
+            raise ValueError(
+                f"{type(self).__name__}'s margin of {m:,} pixels makes the {h:,} x {w:,} "
+                f"frame {hp:,} x {wp:,} pixels ({hp * wp:,} pixels, {_size(hp * wp)} of "
+                f"float32 RGB); at most {MAX_PADDED_PIXELS:,} pixels (8192 x 8192) are "
+                "blurred: render a smaller frame or use a narrower PSF"
+            )
+        return hp, wp
+
+    def apply(self, image: Float[ArrayLike, "Hp Wp *C"]) -> Float[Array, "H W *C"]:
+        """Blur an image rendered with this PSF's margin, and crop the margin.
+
+        Works under `jit`, `vmap` and `grad` (with respect to the image and the PSF's
+        array fields: `sigma_px`, the PSF image's pixels); the margin is static.
+
+        **Arguments:**
+
+        - `image`: linear radiance, `(H + 2 m, W + 2 m)` or `(H + 2 m, W + 2 m, C)`
+            (channels last, each blurred alone), `m` = `margin_px`; at most
+            `MAX_PADDED_PIXELS` pixels.
+
+        **Returns:** the central `(H, W)` or `(H, W, C)` crop of the blurred image, in
+        the image's float dtype (an integer image in the default float dtype). The
+        total is kept, but for the light that crosses the crop's edge.
+        """
+        img = as_float(image)
+        if img.ndim not in (2, 3):
+            raise ValueError(
+                f"image of shape {tuple(img.shape)} is neither (rows, columns) nor "
+                "(rows, columns, channels)"
+            )
+        hp, wp = img.shape[:2]
+        m = self.margin_px
+        if min(hp, wp) <= 2 * m:
+            raise ValueError(
+                f"image of {hp} x {wp} pixels has no frame inside {type(self).__name__}'s "
+                f"margin of {m} pixels on every side: render it on the frame with its "
+                "margin (padded_shape)"
+            )
+        self.padded_shape((hp - 2 * m, wp - 2 * m))
+        otf = self.otf((hp, wp))
+        if img.ndim == 2:
+            return convolve_psf(img, otf, pad=m)
+        return jnp.moveaxis(convolve_psf(jnp.moveaxis(img, -1, 0), otf, pad=m), 0, -1)
+
+
+class GaussianPSF(AbstractPSF):
+    """A circular Gaussian PSF of standard deviation `sigma_px` pixels (the OTF of
+    `gaussian_otf`: the band-limited Gaussian, no kernel to truncate).
+
+    **Fields:**
+
+    - `sigma_px`: the standard deviation, in pixels (FWHM = 2.3548 sigma_px), finite
+        and > 0. A scalar array: it may be traced and differentiated (`jax.grad` of a
+        loss of `apply` or `render_array(..., psf=)`).
+    - `margin_px` (static): the margin a render needs, in pixels on every side:
+        `ceil(4 sigma_px)` by default (`psf_margin`: at most ~1.3e-4 of the peak is
+        lost past it or wrapped in), at most `MAX_MARGIN_PX` = 4096.
+
+    **Arguments:** `sigma_px` as above; `margin_px`: the margin (default from a known
+    `sigma_px`; needed when `sigma_px` is traced, since it fixes array shapes). A bad
+    width or margin is a `ValueError` naming it (a traced width < 0 or NaN fails at run
+    time in `otf`).
+    """
+
+    sigma_px: Float[Array, ""]
+    margin_px: int = eqx.field(static=True)
+
+    def __init__(self, sigma_px: ArrayLike, *, margin_px: int | None = None):
+        sigma = as_float(real_array("sigma_px", sigma_px))
+        if sigma.ndim != 0:
+            raise ValueError(f"sigma_px must be one width in pixels; got shape {sigma.shape}")
+        value = concrete(sigma)
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ValueError(
+                f"sigma_px={float(value)!r} must be finite and > 0 (pixels; for no blur, psf=None)"
+            )
+        who = "GaussianPSF"
+        if margin_px is None:
+            if value is None:
+                raise ValueError(
+                    "GaussianPSF of a traced sigma_px needs margin_px= (pixels): the margin "
+                    "fixes array shapes"
+                )
+            who = f"GaussianPSF(sigma_px={float(value)!r})"
+            margin_px = _margin_of(float(value))
+        hint = " (sigma_px <= 1024). Is the width in pixels, not arcseconds or degrees?"
+        self.margin_px = _check_margin(who, margin_px, hint)
+        self.sigma_px = sigma
+
+    @property
+    def width_px(self) -> Float[Array, ""]:
+        """`sigma_px` itself (pixels)."""
+        return self.sigma_px
+
+    def otf(self, shape: tuple[int, int]) -> Float[Array, "H W2"]:
+        """`gaussian_otf(shape, sigma_px)`: real, `(rows, columns // 2 + 1)`."""
+        return gaussian_otf(shape, self.sigma_px)
+
+
+class ImagePSF(AbstractPSF):
+    """A PSF given as an image (a star's cutout, a model of the optics), normalised to
+    unit sum and centred by `centre` (the OTF of `image_otf`).
+
+    **Fields:**
+
+    - `image`: the PSF, `(h, w)` pixels of the image it blurs, any units (it is
+        normalised), finite, with a total > 0 (negative pixels are allowed). An array:
+        it may be traced and differentiated.
+    - `centre` (static): `"middle"` (the image's geometric centre, index $(n - 1)/2$
+        along each axis; prefer odd sizes) or `"centroid"` (its flux centroid), as
+        `image_otf`.
+    - `margin_px` (static): the margin a render needs, in pixels on every side: the
+        distance from the centre to the image's farthest pixel, rounded up
+        (`psf_margin`): all of the PSF's light lands in the crop. At most
+        `MAX_MARGIN_PX` = 4096.
+
+    **Arguments:** `image`, `centre` as above; `margin_px`: the margin (default as
+    above; needed for `centre="centroid"` with a traced image). A bad image, centre or
+    margin is a `ValueError` naming it.
+    """
+
+    image: Float[Array, "h w"]
+    centre: str = eqx.field(static=True)
+    margin_px: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        image: ArrayLike,
+        centre: Literal["middle", "centroid"] = "middle",
+        *,
+        margin_px: int | None = None,
+    ):
+        _check_centre(centre)
+        if not isinstance(image, jax.Array | np.ndarray) and has_tracer(image):
+            image = jnp.asarray(image)  # a list holding tracers
+        p = as_float(real_array("image", image))
+        if p.ndim != 2 or min(p.shape) < 1:
+            raise ValueError(f"image of shape {tuple(p.shape)} is not a 2-D PSF image (h, w)")
+        value = concrete(p)
+        if value is not None:
+            bad = ~np.isfinite(value)
+            if np.any(bad):
+                raise ValueError(
+                    f"image has {int(np.sum(bad))} NaN or infinite pixels (the first at "
+                    f"{tuple(int(i) for i in np.argwhere(bad)[0])}); a PSF image must be finite"
+                )
+            total = float(np.sum(value, dtype=np.float64))
+            if not total > 0:
+                raise ValueError(
+                    f"image has a total of {total!r}; a PSF image's total must be > 0 "
+                    "(it is normalised to 1)"
+                )
+        who = f"ImagePSF of {p.shape[0]:,} x {p.shape[1]:,} pixels"
+        if margin_px is None:
+            if centre == "middle":
+                margin_px = max(p.shape) // 2
+            elif value is None:
+                raise ValueError(
+                    'ImagePSF(centre="centroid") of a traced image needs margin_px= '
+                    "(pixels): the margin fixes array shapes"
+                )
+            else:
+                margin_px = psf_margin(value, centre="centroid")
+        hint = ": crop the PSF image to where its light is"
+        self.margin_px = _check_margin(who, margin_px, hint)
+        self.centre = centre
+        self.image = p
+
+    @property
+    def width_px(self) -> Float[Array, ""]:
+        """The image's rms distance from its flux centroid over $\\sqrt 2$, in pixels
+        (negative pixels counted as 0): a Gaussian's sigma for a Gaussian image."""
+        p = jnp.clip(self.image, 0.0, None)
+        total = jnp.sum(p)
+        y = jnp.arange(p.shape[0], dtype=p.dtype)[:, None]
+        x = jnp.arange(p.shape[1], dtype=p.dtype)[None, :]
+        cy, cx = jnp.sum(p * y) / total, jnp.sum(p * x) / total
+        return jnp.sqrt(jnp.sum(p * ((y - cy) ** 2 + (x - cx) ** 2)) / (2.0 * total))
+
+    def otf(self, shape: tuple[int, int]) -> Complex[Array, "H W2"]:
+        """`image_otf(shape, image, centre=centre)`: complex,
+        `(rows, columns // 2 + 1)`."""
+        return image_otf(shape, self.image, centre=self.centre)
