@@ -9,6 +9,10 @@ disk get the same blocks, memory bound and progress as a bare scene.
 
 `render_array(scene)` is the same image as one traceable function, for `jit`, `vmap`
 and `grad` with respect to any array field of the scene.
+
+With `psf=` (a `_psf.AbstractPSF`), either renders the camera's frame enlarged by the
+PSF's margin on every side at the same focal length in pixels (`_with_margin`), blurs
+each channel by FFT and returns the original frame: what a fit compares with an image.
 """
 
 import dataclasses
@@ -20,14 +24,15 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import _kernel
-from ._camera import Camera
+from ._camera import MAX_SIDE, Camera
 from ._compile import ahead, program
 from ._plan import CHUNK_SAMPLES, Plan, frame, plan, starts
+from ._psf import AbstractPSF
 from ._raymap import RayMap, placeholder, tabulate
 from ._scene import Scene
 from ._sky import AbstractSky
 from ._trace import TABLE_SETTINGS
-from ._util import host_driver, is_concrete
+from ._util import concrete, host_driver, is_concrete
 
 
 def as_scene(scene_or_camera, sky: AbstractSky | None = None, accuracy=None) -> Scene:
@@ -134,6 +139,7 @@ def render(
     sky: AbstractSky | None = None,
     *,
     accuracy: float | None = None,
+    psf: AbstractPSF | None = None,
     chunk_samples: int = CHUNK_SAMPLES,
     progress: bool | None = None,
     dtype=None,
@@ -149,6 +155,14 @@ def render(
       shorthand for `Scene(camera, sky)`. A camera with a batch axis (`approach`,
       `orbit`, `pan`, `zoom`, `stack_cameras`) renders one image a frame.
     - `accuracy`: replaces the scene's ray-map accuracy (radians).
+    - `psf`: a point-spread function (`GaussianPSF(sigma_px)`, `ImagePSF(image)`;
+      widths in pixels of this image), or `None`. The camera's frame is rendered
+      enlarged by the PSF's `margin_px` on every side at the same focal length in
+      pixels (the FOV widened to match, so every pixel sees the same rays), each
+      frame's channels are blurred by FFT (in float64 where `jax_enable_x64` is on)
+      and the original frame is returned: the image a fit with this PSF compares with
+      the data. The total light is kept but for what crosses the frame's edge. A PSF
+      whose margin makes a frame of more than 2**26 pixels is a `ValueError`.
     - `chunk_samples`: area samples a block (memory: about 100 bytes each).
     - `progress`: a progress bar (`None`: shown once the render has taken 2 s).
     - `dtype`: the dtype pixels are computed in, float32 or float64 (default the
@@ -161,10 +175,57 @@ def render(
     `TypeError` to say.
     """
     scene = as_scene(scene, sky, accuracy)
-    host_driver("render", "use jaxlens.render_array there", scene)
+    host_driver("render", "use jaxlens.render_array there", scene, psf)
     single = scene.camera.batch_shape == ()
+    if psf is not None:
+        scene = _with_margin(scene, psf)
     out = _run(*_prepared(scene, chunk_samples, dtype), progress)
+    if psf is not None:
+        # A frame at a time (the device holds one frame's transforms).
+        blur = np.float64 if jax.config.read("jax_enable_x64") else np.float32
+        out = np.stack([np.asarray(_blur(psf, f, blur, np.float32)) for f in out])
     return out[0] if single else out
+
+
+def _with_margin(scene: Scene, psf) -> Scene:
+    """The scene with its camera's frame enlarged by `psf.margin_px` pixels on every
+    side at the same focal length in pixels, $f = (W/2)/\\tan(\\mathrm{FOV}/2)$: the
+    FOV widened to $2 \\arctan(\\tan(\\mathrm{FOV}/2)\\,W'/W)$, so pixel $(i, j)$ of the
+    frame is pixel $(i + m, j + m)$ of the enlarged one, with the same rays. Works with
+    traced camera values (`render_array` under `jit`)."""
+    if not isinstance(psf, AbstractPSF):
+        raise ValueError(
+            f"psf must be a PSF (jaxlens.GaussianPSF, jaxlens.ImagePSF) or None; got "
+            f"{type(psf).__name__}"
+        )
+    cam = scene.camera
+    m = psf.margin_px
+    hp, wp = psf.padded_shape((cam.height, cam.width))
+    if max(hp, wp) > MAX_SIDE:
+        raise ValueError(
+            f"{type(psf).__name__}'s margin of {m:,} pixels makes the {cam.height:,} x "
+            f"{cam.width:,} frame {hp:,} x {wp:,} pixels: a side of at most {MAX_SIDE:,}"
+        )
+    if m == 0:
+        return scene
+    fov = concrete(cam.fov)
+    if fov is None:  # traced: the same formula in the camera's dtype
+        fov = 2.0 * jnp.arctan(jnp.tan(0.5 * cam.fov) * (wp / cam.width))
+    else:  # known: in float64 on the host, then rounded to the camera's dtype
+        fov = 2.0 * np.arctan(np.tan(0.5 * fov.astype(np.float64)) * (wp / cam.width))
+    big = Camera(cam.distance, fov, wp, hp, yaw=cam.yaw, pitch=cam.pitch, roll=cam.roll,
+                 azimuth=cam.azimuth, elevation=cam.elevation, supersample=cam.supersample,
+                 sampling=cam.sampling, dtype=cam.dtype)  # fmt: skip
+    return eqx.tree_at(lambda s: s.camera, scene, big)
+
+
+def _blur_body(psf, image, dtype, out_dtype):
+    return psf.apply(image.astype(dtype)).astype(out_dtype)
+
+
+# One program a PSF kind, frame size and dtype: a frame's channels blurred and cropped,
+# computed in `dtype`, returned in `out_dtype`.
+_blur = program(_blur_body, profile="xla")
 
 
 def _prepared(scene: Scene, chunk_samples: int, dtype):
@@ -274,6 +335,7 @@ def render_array(
     accuracy: float | None = None,
     plan: Plan | None = None,
     ray_map: RayMap | None = None,
+    psf: AbstractPSF | None = None,
 ) -> Float[Array, "H W 3"]:
     """The image of a scene (one camera) as one traceable function: works under `jit`,
     `vmap` (batches of scenes) and `grad` (with respect to any array field of camera,
@@ -283,7 +345,10 @@ def render_array(
     (radians, replaces the scene's); `plan`: a `Plan` to follow (default: `plan(scene)`
     for the whole image as one block; under tracing the safe one); `ray_map`: the
     `RayMap` of the camera's distance if built already (default: built inside, so
-    gradients with respect to the distance flow through the table).
+    gradients with respect to the distance flow through the table); `psf`: a PSF, as
+    in `render` (the frame rendered on the PSF's margin, blurred, cropped; gradients
+    flow to the PSF's array fields too), or `None`. With a PSF, `plan` must be `None`
+    (the enlarged frame is planned here).
 
     **Returns:** linear radiance `(H, W, 3)` in the camera's dtype (float32 or
     float64; another is a `ValueError`); captured rays 0. A bad traced value (distance
@@ -299,6 +364,14 @@ def render_array(
     from . import _plan
 
     scene = as_scene(scene, sky, accuracy)
+    if psf is not None:
+        if plan is not None:
+            raise ValueError(
+                "render_array(..., psf=) plans the frame enlarged by the PSF's margin itself: "
+                "pass plan=None"
+            )
+        big = render_array(_with_margin(scene, psf), ray_map=ray_map)
+        return _blur(psf, big, big.dtype, big.dtype)
     eager = is_concrete((scene, ray_map))
     if eager:
         _kernel.verify(scene)  # the same messages, as ValueError

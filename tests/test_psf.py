@@ -1,8 +1,11 @@
 """Point-spread functions: the Gaussian and image OTFs against direct spatial convolution
 (scipy), the margin's error bound, flux conservation, no shift of a point source (odd
-and even PSF images), gradients, float32, jit and vmap, and the argument checks.
+and even PSF images), gradients, float32, jit and vmap, and the argument checks; the PSF
+objects against those functions, and `render(scene, psf=...)` against a brute-force
+render, blur (scipy) and crop.
 
-The module is not exported from `jaxlens` yet, so it is imported from its private path.
+The PSF classes are not exported from `jaxlens` yet, so they are imported from their
+private module.
 """
 
 import math
@@ -14,7 +17,9 @@ import pytest
 from scipy import ndimage
 from scipy.stats import norm
 
+import jaxlens as jl
 from jaxlens import convolve_psf, gaussian_otf, image_otf, psf_margin
+from jaxlens._psf import AbstractPSF, GaussianPSF, ImagePSF
 
 EPS64 = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)
@@ -399,3 +404,234 @@ def test_margin_rule_of_thumb_is_what_the_docstring_says(sigma):
     # and no more for the sampled Gaussian at the widths used.
     assert abs(4 * norm.sf(4.0) / 1.267e-4 - 1) < 0.01
     assert _outside_square(sigma, psf_margin(sigma)) <= 4 * norm.sf(4.0)
+
+
+# --- PSF objects ----------------------------------------------------------------------
+
+
+def test_psf_objects_give_the_functions_otfs_and_margins():
+    # The objects are thin wrappers: the same OTF bit for bit, psf_margin's margin, and
+    # apply is convolve_psf channel by channel.
+    rng = np.random.default_rng(10)
+    shape = (30, 37)
+    g = GaussianPSF(1.7)
+    np.testing.assert_array_equal(g.otf(shape), gaussian_otf(shape, 1.7))
+    assert g.margin_px == psf_margin(1.7) == 7 and float(g.width_px) == 1.7
+    psf = rng.random((6, 9)) + 0.1
+    for centre in ("middle", "centroid"):
+        p = ImagePSF(psf, centre)
+        np.testing.assert_array_equal(p.otf(shape), image_otf(shape, psf, centre=centre))
+        assert p.margin_px == psf_margin(psf, centre=centre)
+    img = rng.random((3, *shape))
+    for q in (g, ImagePSF(psf)):
+        m = q.margin_px
+        ref = np.asarray(convolve_psf(img, q.otf(shape), pad=m))
+        out = np.asarray(q.apply(np.moveaxis(img, 0, -1)))
+        assert out.shape == (shape[0] - 2 * m, shape[1] - 2 * m, 3)
+        np.testing.assert_array_equal(np.moveaxis(out, -1, 0), ref)
+        np.testing.assert_array_equal(q.apply(img[1]), ref[1])
+    with pytest.raises(TypeError, match="abstract"):
+        AbstractPSF()
+
+
+def test_image_psf_width_is_the_rms_radius_about_the_centroid():
+    # A sampled Gaussian of sigma 2, off the cutout's centre: the discrete second moment
+    # is sigma^2 to within e^(-2 pi^2 sigma^2) (Poisson summation), the cutout at >= 5
+    # sigma drops ~e^-12.5 of the light: 1e-4 relative. A point of light has width 0
+    # wherever it sits (the centroid, not the middle pixel, is the centre).
+    psf = _gaussian_image((25, 27), (11.6, 13.3), 2.0)
+    assert abs(float(ImagePSF(psf).width_px) / 2.0 - 1) < 1e-4
+    dot = np.zeros((7, 7))
+    dot[1, 5] = 3.0
+    assert float(ImagePSF(dot).width_px) == 0.0
+    # two points 4 pixels apart: rms radius 2, width 2 / sqrt(2)
+    two = np.zeros((7, 7))
+    two[3, 1] = two[3, 5] = 1.0
+    assert abs(float(ImagePSF(two).width_px) - math.sqrt(2.0)) < 1e-12
+
+
+def test_apply_keeps_the_flux_and_is_differentiable_in_sigma():
+    # Light that starts >= 12 pixels (6 sigma) inside the crop stays in it to 1e-8
+    # (the Gaussian's mass beyond 6 sigma); a jitted apply is the eager one; the
+    # gradient in sigma matches central differences (h = 1e-4: truncation ~h^2 / 6 of
+    # the third derivative, round-off eps / h: rtol 1e-7, as for convolve_psf), through
+    # a PSF built inside the function and through the object as a pytree.
+    import equinox as eqx
+
+    rng = np.random.default_rng(11)
+    g = GaussianPSF(2.0)
+    m = g.margin_px
+    img = np.zeros((60, 64, 3))
+    img[m + 12 : -m - 12, m + 12 : -m - 12] = rng.random((60 - 2 * m - 24, 64 - 2 * m - 24, 3))
+    out = g.apply(img)
+    np.testing.assert_allclose(np.sum(out, axis=(0, 1)), np.sum(img, axis=(0, 1)), rtol=1e-8)
+    weight = rng.standard_normal(out.shape)
+
+    @jax.jit
+    def loss(s):
+        return jnp.sum(weight * GaussianPSF(s, margin_px=m).apply(img))
+
+    s, h = 2.0, 1e-4
+    np.testing.assert_allclose(loss(s), np.sum(weight * out), rtol=1e-13)
+    fd = (loss(s + h) - loss(s - h)) / (2 * h)
+    grad = jax.jit(jax.grad(loss))(s)
+    np.testing.assert_allclose(grad, fd, rtol=1e-7)
+    of_object = eqx.filter_jit(eqx.filter_grad(lambda q: jnp.sum(weight * q.apply(img))))(g)
+    np.testing.assert_allclose(of_object.sigma_px, grad, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda: GaussianPSF(0.0), r"sigma_px=0.0 must be finite and > 0"),
+        (lambda: GaussianPSF(-1.0), r"sigma_px=-1.0 must be finite and > 0"),
+        (lambda: GaussianPSF(float("nan")), r"sigma_px=nan"),
+        (lambda: GaussianPSF(float("inf")), r"sigma_px=inf"),
+        (lambda: GaussianPSF([1.0, 2.0]), r"one width in pixels; got shape \(2,\)"),
+        (lambda: GaussianPSF(1.0, margin_px=-1), r"margin_px=-1 must be >= 0"),
+        (lambda: GaussianPSF(1.0, margin_px=2.5), r"margin_px=2.5 must be a whole number"),
+        (lambda: ImagePSF(np.zeros((3, 3))), r"total of 0.0"),
+        (lambda: ImagePSF(-np.ones((3, 3))), r"total of -9.0"),
+        (lambda: ImagePSF(np.array([[1.0, np.inf], [0, 1]])), r"1 NaN or infinite pixels"),
+        (lambda: ImagePSF(np.ones(5)), r"shape \(5,\) is not a 2-D PSF image"),
+        (lambda: ImagePSF(np.ones((3, 3, 3))), r"shape \(3, 3, 3\) is not a 2-D"),
+        (lambda: ImagePSF(np.ones((3, 3)), "peak"), r"centre='peak'"),
+        (lambda: GaussianPSF(1.0).apply(np.zeros((8, 8))), r"8 x 8 pixels has no frame"),
+        (lambda: GaussianPSF(1.0).apply(np.zeros((20, 20, 3, 1))), r"neither"),
+        (lambda: jax.jit(lambda s: GaussianPSF(s).sigma_px)(1.0), r"needs margin_px="),
+        (
+            lambda: jax.jit(lambda p: ImagePSF(p, "centroid").image)(np.ones((3, 3))),
+            r"traced image needs margin_px=",
+        ),
+    ],
+)
+def test_psf_objects_refuse_bad_values(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_psf_objects_refuse_complex_widths():
+    with pytest.raises(TypeError, match="sigma_px=.* must be real numbers"):
+        GaussianPSF(1.0 + 1.0j)
+
+
+def test_huge_psfs_are_refused_naming_the_size_they_ask_for():
+    # A width in arcseconds given as pixels: the margin alone would be 4 million pixels a
+    # side, hundreds of TiB of image. Refused when the PSF is built, before any work.
+    with pytest.raises(ValueError, match=r"margin of 4,000,000 pixels .* 8,000,001 x 8,000,001 "
+                       r"pixels \(698 TiB of float32 RGB\); at most 4,096"):  # fmt: skip
+        GaussianPSF(1e6)
+    with pytest.raises(ValueError, match=r"margin of 4e\+300 pixels"):
+        GaussianPSF(1e300)  # 4 sigma is no int of any use: still a clear message
+    with pytest.raises(ValueError, match=r"ImagePSF of 2 x 8,200 pixels needs a margin of 4,100"):
+        ImagePSF(np.ones((2, 8200)))
+    GaussianPSF(1024.0)  # the largest margin, 4096 pixels, is allowed
+    # the frame with its margin is bounded too (2**26 pixels), for apply and render
+    wide = GaussianPSF(250.0)  # a margin of 1000 pixels
+    with pytest.raises(ValueError, match=r"frame 8,200 x 8,200 pixels \(67,240,000 pixels"):
+        wide.padded_shape((6200, 6200))
+    assert wide.padded_shape((6000, 6200)) == (8000, 8200)
+    cam = jl.Camera(15.0, 1.0, 7000, 7000)
+    with pytest.raises(ValueError, match=r"frame 9,000 x 9,000 pixels"):
+        jl.render(cam, jl.Checker(), psf=wide)
+    with pytest.raises(ValueError, match=r"frame 9,000 x 9,000 pixels"):
+        jl.render_array(cam, jl.Checker(), psf=wide)
+
+
+# --- render with a PSF ----------------------------------------------------------------
+
+_W, _H, _FOV = 40, 32, math.radians(60.0)
+_SKY = jl.Checker(12, 6)
+
+
+def _camera(width, height, fov, **kwargs):
+    # yaw: the hole off the image centre, so the mirror-symmetric fast path is not used
+    return jl.Camera(15.0, fov, width, height, yaw=0.05, supersample=2, **kwargs)
+
+
+def _enlarged(margin, fov=_FOV):
+    """The camera of the frame with `margin` pixels on every side at the same focal
+    length in pixels, from the definition f = (W/2) / tan(FOV/2)."""
+    w = _W + 2 * margin
+    return _camera(w, _H + 2 * margin, 2.0 * math.atan(math.tan(fov / 2) * w / _W))
+
+
+def _brute_force(margin, blur):
+    """A frame `margin` pixels wider on every side rendered without a PSF, each channel
+    blurred by `blur` in float64, cropped to the frame."""
+    big = jl.render(jl.Scene(_enlarged(margin), _SKY)).astype(np.float64)
+    out = np.stack([blur(big[..., c]) for c in range(3)], axis=-1)
+    return out[margin:-margin, margin:-margin], big[margin:-margin, margin:-margin]
+
+
+def test_render_with_a_gaussian_psf_is_render_blur_crop():
+    # The reference: a frame 16 pixels wider on every side (more than the 10-sigma reach
+    # of its kernel), blurred by scipy's sampled Gaussian. The render's own margin is
+    # 4 sigma = 6 pixels: it may miss, and wrap in, at most 2 x 1.3e-4 of the peak
+    # (module docstring); the band-limited and sampled Gaussians differ by their
+    # aliasing, ~3 e^(-pi^2 sigma^2 / 2) = 5e-5 at sigma = 1.5; the pixels are float32
+    # (6e-8). So 1e-3 of the peak; one pixel of misregistration would be ~0.3.
+    sigma = 1.5
+    scene = jl.Scene(_camera(_W, _H, _FOV), _SKY)
+    got = jl.render(scene, psf=GaussianPSF(sigma))
+    assert got.shape == (_H, _W, 3) and got.dtype == np.float32
+    ref, sharp = _brute_force(
+        16, lambda a: ndimage.gaussian_filter(a, sigma, mode="constant", truncate=10.0)
+    )
+    peak = ref.max()
+    assert peak > 0.5  # a checkerboard in view, not a black frame
+    assert np.max(np.abs(got - ref)) < 1e-3 * peak
+    assert np.max(np.abs(got - sharp)) > 0.1 * peak  # the blur is there
+    assert np.max(np.abs(got[:, 1:] - ref[:, :-1])) > 0.1 * peak  # a shift would show
+    # an image PSF of the same sampled Gaussian (13 x 13, its cutout at 4 sigma: light
+    # it leaves out ~1.3e-4, counted twice) draws the same image; same margin, 6 pixels
+    psf = _gaussian_image((13, 13), (6, 6), sigma)
+    assert ImagePSF(psf).margin_px == 6
+    np.testing.assert_allclose(jl.render(scene, psf=ImagePSF(psf)), got, rtol=0, atol=1e-3 * peak)
+
+
+def test_render_with_a_psf_keeps_the_light():
+    # A star behind the hole, all of its images well inside a wide frame on a black sky
+    # (the 3 pixels along each edge of the frame with the PSF's margin hold < 1e-12 of
+    # the light): the blurred frame's total is the sharp frame's (float32 pixels summed,
+    # FFT round-off: 1e-5 relative), while its peak drops.
+    star = jl.GaussianStar(math.radians(2.0), lon=0.1, lat=0.05)
+    fov = math.radians(100.0)
+    blurred = jl.render(_camera(_W, _H, fov), star, psf=GaussianPSF(1.5)).astype(np.float64)
+    sharp = jl.render(_enlarged(6, fov), star).astype(np.float64)  # the same program
+    edges = sharp[:3].sum() + sharp[-3:].sum() + sharp[:, :3].sum() + sharp[:, -3:].sum()
+    assert sharp.sum() > 10.0 and edges < 1e-12 * sharp.sum()
+    np.testing.assert_allclose(blurred.sum(axis=(0, 1)), sharp.sum(axis=(0, 1)), rtol=1e-5)
+    assert blurred.max() < 0.8 * sharp.max()
+
+
+def test_render_array_with_a_psf_under_jit_is_render():
+    # The traced path: the FOV and the PSF's width traced, the enlarged camera built
+    # inside the program. The same pixels as render's, to float32 rounding (render's
+    # output) of a peak of ~1.
+    @jax.jit
+    def draw(fov, sigma):
+        return jl.render_array(_camera(_W, _H, fov), _SKY, psf=GaussianPSF(sigma, margin_px=6))
+
+    got = draw(_FOV, 1.5)
+    assert got.shape == (_H, _W, 3) and got.dtype == jnp.float64
+    ref = jl.render(jl.Scene(_camera(_W, _H, _FOV), _SKY), psf=GaussianPSF(1.5))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+
+
+def test_render_of_frames_with_a_psf():
+    # A batch of frames is blurred frame by frame: each as rendered alone.
+    cams = jl.stack_cameras([_camera(_W, _H, _FOV), _camera(_W, _H, 0.9 * _FOV)])
+    psf = GaussianPSF(1.5)
+    frames = jl.render(cams, _SKY, psf=psf)
+    assert frames.shape == (2, _H, _W, 3)
+    one = jl.render(_camera(_W, _H, 0.9 * _FOV), _SKY, psf=psf)
+    np.testing.assert_allclose(frames[1], one, rtol=0, atol=1e-6)
+
+
+def test_render_psf_argument_checks():
+    cam = _camera(_W, _H, _FOV)
+    with pytest.raises(ValueError, match="psf must be a PSF .* got float"):
+        jl.render(cam, _SKY, psf=1.5)
+    with pytest.raises(ValueError, match="pass plan=None"):
+        jl.render_array(cam, _SKY, psf=GaussianPSF(1.0), plan=jl.plan(jl.Scene(cam, _SKY)))
