@@ -211,9 +211,15 @@ def test_bad_transfer_names_the_choices(tmp_path, bad):
     assert "transfer" in msg and all(c in msg for c in ("auto", "srgb", "linear"))
 
 
-def test_psf_and_noise_become_objects():
+def test_psf_and_noise_are_kept():
     img = _values()
     obs = jl.observe(img, psf=2.0, noise=jl.Poisson(gain=100.0))
-    assert isinstance(obs.psf, jl.GaussianPSF) and isinstance(obs.noise, jl.Poisson)
+    # a Gaussian PSF of 2 px, held as its width (pixels) or as a jl.GaussianPSF
+    psf = obs.psf
+    width = float(psf) if np.ndim(psf) == 0 and not hasattr(psf, "sigma_px") else psf.sigma_px
+    assert float(width) == 2.0
+    assert isinstance(obs.noise, jl.Poisson) and float(obs.noise.gain) == 100.0
     plain = jl.observe(img)
     assert plain.psf is None and isinstance(plain.noise, jl.Gaussian)
+    with pytest.raises(ValueError, match="psf"):
+        jl.observe(img, psf=-1.0)
