@@ -1,6 +1,6 @@
 """Benchmark: fitting D and FOV to Einstein rings made by an independent renderer.
 
-    .venv/bin/python benchmarks/bench_fit.py [--only rings|arcs] [--cases N] [--keep DIR]
+    .venv/bin/python benchmarks/bench_fit.py [--only rings|arcs|files] [--cases N] [--keep DIR]
     .venv/bin/python benchmarks/bench_fit.py --render-only [--cases N] [--keep DIR]
 
 Writes benchmarks/results/fit.md and fit.json. Each image is rendered here by a
@@ -11,7 +11,7 @@ convention). Each fit is one fresh `jaxlens fit IMAGE --json` process with the
 persistent compile cache switched off, so its wall time includes starting Python,
 importing JAX and compiling.
 
-Two sections, one report:
+Three sections, one report:
 
 - **Rings** (`CASES`): a Gaussian star exactly behind the hole. Gaussian noise is added,
   the image clipped to [0, 1] and stored as an 8- or 16-bit grey PNG (linear values, no
@@ -30,8 +30,19 @@ Two sections, one report:
   640 x 480. The fit gets `--psf-sigma-px`, `--noise poisson` and `--star-sigma-deg` as
   the case says. The report adds the source position's error and the pulls of lon, lat.
 
-`--only rings|arcs` runs one section; the other section's rows are then taken from the
-existing fit.json (where it has them: rows without a "section" key are rings) and
+- **Files as users have them** (`FILE_SCENES` x `FILE_CASES`): the rings above stored
+  the way other software stores them, not tagged for the fit. Linear values in an
+  untagged 8- or 16-bit grey PNG (no sRGB, gAMA or iCCP chunk: what numpy, Pillow and
+  camera pipelines write), written byte by byte by `tests/user_images.py`'s own PNG
+  writer, fitted with `--transfer linear` and with the default (auto, which must fit
+  them right or say that it cannot tell); and the files `jaxlens render` writes itself
+  of the same ring (its sRGB-tagged 8-bit PNG and its linear float EXR, no noise but
+  the PNG's quantisation), fitted with the default. The report says which decoding the
+  fit used and why, and counts the fits that are valid but off by more than 1 %: the
+  silent failures.
+
+`--only rings|arcs|files` runs one section; the other sections' rows are then taken
+from the existing fit.json (where it has them: rows without a "section" key are rings) and
 reported again under a note that they were not run this time, so a one-section run
 leaves a complete report. `--cases N` runs the first N cases of each section run.
 `--render-only` renders the general cases' clean images at 3 x 3 samples a pixel (a few
@@ -109,6 +120,25 @@ ARC_CASES = [
     (200.0, 12.0, 640, 480, 0.25, 0.25, 0.2, 0.85, 0.05, 1.5, 0.01, 8, False),
     # Poisson with no floor (zero counts off the arcs), negative lon and lat (7.7, 6.8: cut)
     (120.0, 18.0, 480, 360, -1.0, -0.5, 0.35, 0.8, 0.0, 0, ("poisson", 600.0), 16, True),
+]
+
+# Files as users have them. Scenes: (D, FOV deg, width, height, sigma deg (given to the
+# fit), brightness, floor, noise); the noise is added to the PNGs written here, not to
+# `jaxlens render`'s files. Cases: (how the file is made, bits, --transfer): "png" is
+# linear values in an untagged grey PNG (`user_images.write_png`, no colour chunk);
+# "render-png" / "render-exr" are `jaxlens render`'s own sRGB PNG and float EXR; "auto"
+# is the default (no --transfer given).
+FILE_SCENES = [
+    (20.0, 60.0, 320, 240, 1.5, 0.8, 0.05, 0.01),
+    (35.0, 45.0, 400, 300, 1.0, 0.8, 0.00, 0.005),
+]
+FILE_CASES = [
+    ("png", 8, "linear"),
+    ("png", 8, "auto"),
+    ("png", 16, "linear"),
+    ("png", 16, "auto"),
+    ("render-png", 8, "auto"),
+    ("render-exr", 32, "auto"),
 ]
 
 # ------------------------------------------------------------ independent renderer
@@ -345,6 +375,74 @@ def run_arcs(n, folder, render_only=False):
     return rows
 
 
+def user_file(kind, bits, scene, clean, rng, folder, name):
+    """The file of one `FILE_CASES` case: `(path, seconds to make it)`.
+
+    "png": `clean` plus Gaussian noise, quantised (clipped to [0, 1]) and written as an
+    untagged grey PNG by `user_images.write_png`; "render-png" / "render-exr": `jaxlens
+    render --sky star` of the scene (area-exact Gauss-Legendre cells, 8 x 8 a pixel,
+    float64), in a fresh process."""
+    import user_images
+
+    d, fov, w, h, sig, amp, floor, noise = scene
+    t0 = time.perf_counter()
+    if kind == "png":
+        path = folder / f"{name}.png"
+        data = clean + noise * rng.standard_normal(clean.shape)
+        user_images.write_png(path, user_images.quantise(data, bits))
+        assert user_images.png_chunks(path) == [b"IHDR", b"IDAT", b"IEND"]  # untagged
+        return path, time.perf_counter() - t0
+    path = folder / f"{name}.{kind.split('-')[1]}"
+    argv = [str(pathlib.Path(sys.executable).with_name("jaxlens")), "render", "--sky", "star",
+            "--distance", repr(d), "--fov-deg", repr(fov), "--size", f"{w}x{h}",
+            "--star-sigma-deg", repr(sig), "--star-brightness", repr(amp), "--floor",
+            repr(floor), "--sampling", "gauss", "--supersample", "8", "--float64",
+            "-o", str(path)]  # fmt: skip
+    done = subprocess.run(argv, capture_output=True, text=True,
+                          env=dict(os.environ, JAXLENS_CACHE_DIR=""))  # fmt: skip
+    if done.returncode != 0:
+        raise RuntimeError(f"jaxlens render failed: {done.stderr.strip()[-500:]}")
+    return path, time.perf_counter() - t0
+
+
+def run_files(n, folder):
+    """The first `n` of `FILE_SCENES` x `FILE_CASES`: make each file, fit it."""
+    sys.path.insert(0, str(ROOT / "tests"))  # user_images: a PNG writer of its own
+    rows = []
+    cases = [(s, c) for s in range(len(FILE_SCENES)) for c in range(len(FILE_CASES))][:n]
+    clean = {}
+    for i, (si, ci) in enumerate(cases):
+        scene = FILE_SCENES[si]
+        d, fov, w, h, sig, amp, floor, noise = scene
+        kind, bits, transfer = FILE_CASES[ci]
+        t_render = 0.0
+        if kind == "png" and si not in clean:
+            t0 = time.perf_counter()
+            clean[si] = ring_image(d, math.radians(fov), w, h, math.radians(sig), amp, floor)
+            t_render = time.perf_counter() - t0
+        rng = np.random.default_rng([2028, si, ci])
+        path, t_file = user_file(kind, bits, scene, clean.get(si), rng, folder, f"file{i:02d}")
+        extra = [] if transfer == "auto" else ["--transfer", transfer]
+        out, wall = fit_file(path, sig, extra)
+        row = dict(section="files", case=i, kind=kind, bits=bits, transfer=transfer, d=d,
+                   fov=fov, w=w, h=h, sig=sig, floor=floor,
+                   noise=noise if kind == "png" else 0.0, wall=wall,
+                   render=t_render + t_file, argv=extra, fit=out)  # fmt: skip
+        rows.append(row)
+        if "error" in out:
+            print(f"file {i}: error {out['error']}", flush=True)
+            continue
+        print(
+            f"file {i} ({kind}, {bits} bit, --transfer {transfer}): D {out['distance']:.4f}"
+            f"+-{out['distance_err']:.2g} (true {d}), FOV {out['fov_deg']:.4f}"
+            f"+-{out['fov_deg_err']:.2g} (true {fov}), read as {out.get('transfer')} "
+            f"({out.get('transfer_reason')}), valid={out.get('valid')}, {wall:.1f} s"
+            + (f", message: {out['message']}" if out.get("message") else ""),
+            flush=True,
+        )
+    return rows
+
+
 def previous_rows(section):
     """The rows of `section` in the existing fit.json (rows without a section: rings)."""
     try:
@@ -356,7 +454,8 @@ def previous_rows(section):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", choices=("rings", "arcs"), help="run one section (default both)")
+    ap.add_argument("--only", choices=("rings", "arcs", "files"),
+                    help="run one section (default all three)")  # fmt: skip
     ap.add_argument("--cases", type=int, help="the first N cases of each section (default all)")
     ap.add_argument("--keep", type=pathlib.Path, help="keep the PNGs in this folder")
     ap.add_argument("--render-only", action="store_true",
@@ -370,7 +469,9 @@ def main():
         return
     load = os.getloadavg()[0]
     sections = {}
-    for name, cases, run in (("rings", CASES, run_rings), ("arcs", ARC_CASES, run_arcs)):
+    n_files = len(FILE_SCENES) * len(FILE_CASES)
+    for name, cases, run in (("rings", CASES, run_rings), ("arcs", ARC_CASES, run_arcs),
+                             ("files", range(n_files), run_files)):  # fmt: skip
         if args.only in (None, name):
             sections[name] = (run(len(cases) if args.cases is None else args.cases, folder), True)
         else:
@@ -379,10 +480,12 @@ def main():
 
 
 def write_report(sections, load):
-    """fit.md: the machine, the rings, the general cases; fit.json: both sections' rows.
+    """fit.md: the machine, the rings, the general cases, the users' files; fit.json:
+    every section's rows.
 
     A section not run this time keeps the rows the previous fit.json held for it."""
     (rings, rings_ran), (arcs, arcs_ran) = sections["rings"], sections["arcs"]
+    files, files_ran = sections["files"]
     lines = [
         "# Fit benchmark: Einstein rings from an independent renderer",
         "",
@@ -393,13 +496,15 @@ def write_report(sections, load):
     lines += ring_lines(rings, None if rings_ran else _not_run_note("rings", rings))
     lines += ["", "## General cases: arcs, PSF, Poisson", ""]
     lines += arc_lines(arcs, None if arcs_ran else _not_run_note("arcs", arcs))
-    (RESULTS / "fit.json").write_text(json.dumps(rings + arcs, indent=1) + "\n")
+    lines += ["", "## Files as users have them: untagged PNGs, the library's own files", ""]
+    lines += file_lines(files, None if files_ran else _not_run_note("files", files))
+    (RESULTS / "fit.json").write_text(json.dumps(rings + arcs + files, indent=1) + "\n")
     (RESULTS / "fit.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / 'fit.md'}")
 
 
 def _not_run_note(section, rows):
-    other = "arcs" if section == "rings" else "rings"
+    other = "/".join(s for s in ("rings", "arcs", "files") if s != section)
     if rows:
         return (f"**Not run this time** (`--only {other}`): the {len(rows)} rows below are "
                 "those the previous `fit.json` held, from an earlier run (machine and "
@@ -593,6 +698,74 @@ def arc_lines(rows, note=None):
             f"message: {e['fit']['message']}"
         )
     lines.append(_walls_line([r["wall"] for r in rows], "well under 60 s"))
+    return lines
+
+
+def file_lines(rows, note=None):
+    lines = [
+        "Each file: a ring of the first section's renderer (12 x 12 samples a pixel), or "
+        "`jaxlens render --sky star` of the same scene (Gauss-Legendre cells, 8 x 8 a "
+        "pixel, float64). 'png': linear values plus Gaussian noise, clipped to [0, 1], in "
+        "an untagged grey PNG (no sRGB, gAMA or iCCP chunk, written by "
+        "`tests/user_images.py`, not by the library), as numpy, Pillow and camera "
+        "pipelines store them; 'render-png' / 'render-exr': the library's own sRGB-tagged "
+        "8-bit PNG and linear float EXR, no noise but the PNG's quantisation. 'asked': "
+        "the `--transfer` given (auto: none, the default); 'read as': the decoding the fit "
+        "used and its reason. The star's width is given. A fit that is valid but off by "
+        "more than 1 % in D or FOV is a silent failure.",
+    ]
+    if note:
+        lines += ["", note]
+    if not rows:
+        return lines
+    lines += [
+        "",
+        "| file | bits | asked | D | FOV deg | size | floor | noise | D fit | D rel. err "
+        "| D pull | FOV fit | FOV rel. err | FOV pull | read as (why) | valid | wall s |",
+        "|" + "---|" * 17,
+    ]
+    done = []
+    for r in rows:
+        bits = "32 float" if r["kind"] == "render-exr" else r["bits"]
+        head = (f"| {r['kind']} | {bits} | {r['transfer']} | {r['d']:g} | {r['fov']:g} | "
+                f"{r['w']}x{r['h']} | {r['floor']:g} | {r['noise']:g} |")  # fmt: skip
+        f = r["fit"]
+        if "error" in f:
+            lines.append(head + f" error: {f['error']} |" + "|" * 7 + f"{r['wall']:.1f} |")
+            continue
+        e = dict(r, de=f["distance"] / r["d"] - 1, fe=f["fov_deg"] / r["fov"] - 1,
+                 valid=bool(f.get("valid")))  # fmt: skip
+        done.append(e)
+        lines.append(
+            head + f" {f['distance']:.4f} +- {f['distance_err']:.2g} | {e['de']:+.2e} | "
+            f"{_pull(f['distance'], f['distance_err'], r['d']):+.2f} | "
+            f"{f['fov_deg']:.4f} +- {f['fov_deg_err']:.2g} | {e['fe']:+.2e} | "
+            f"{_pull(f['fov_deg'], f['fov_deg_err'], r['fov']):+.2f} | "
+            f"{f.get('transfer')} ({f.get('transfer_reason') or '-'}) | "
+            f"{'yes' if e['valid'] else 'no'} | {r['wall']:.1f} |"
+        )
+    good = [e for e in done if e["valid"]]
+    right = [e for e in good if max(abs(e["de"]), abs(e["fe"])) <= 1e-2]
+    silent = [e for e in good if e not in right]
+    lines += [
+        "",
+        f"{len(done)} of {len(rows)} fits returned a result; {len(good)} valid, {len(right)} "
+        f"of them within 1 % in D and FOV; **{len(silent)} valid but off by more than 1 %** "
+        f"(silent failures); {len(done) - len(good)} flagged.",
+    ]
+    for e in silent:
+        lines.append(
+            f"- Silent: {e['kind']} ({e['bits']} bits), --transfer {e['transfer']}, D = "
+            f"{e['d']:g}, FOV {e['fov']:g}: D off by {e['de']:+.2e}, FOV by {e['fe']:+.2e}, "
+            f"read as {e['fit'].get('transfer')}"
+        )
+    for e in done:
+        if not e["valid"]:
+            lines.append(
+                f"- Flagged: {e['kind']} ({e['bits']} bits), --transfer {e['transfer']}, D = "
+                f"{e['d']:g}, FOV {e['fov']:g} (D off by {e['de']:+.2e}): {e['fit']['message']}"
+            )
+    lines.append(_walls_line([r["wall"] for r in rows], "under 60 s; auto may fit twice"))
     return lines
 
 
