@@ -33,13 +33,22 @@ import jax
 import numpy as np
 
 from .._util import host_driver
-from .pixels import real_image
+from .noise import noise_level
+from .pixels import bin_valid, pixel_centres, real_image
 
 _EDGE = 0.25  # width of the shadow's edge in the model (pixels)
 # Range of the shape c: m, n > 0 needs -3 < c < 1; the exact map has c <= -1 (c -> -1
 # far from the hole), and c > -1 would let a lone arc pass for the other one.
 _C_MIN, _C_MAX = -2.95, -0.6
 _C_MID, _C_HALF = 0.5 * (_C_MIN + _C_MAX), 0.5 * (_C_MAX - _C_MIN)
+# An image of more pixels is measured in s x s bins, s the smallest side that brings
+# it to this many or fewer: the arcs of a 4096 x 4096 image are found on 1024 x 1024
+# bins, their geometry in pixels of the image (a start value: a quarter of a bin of
+# error is a few hundredths of a percent of such a ring's radius).
+_MAX_PIXELS = 1 << 20
+# Area samples the model is evaluated on at a time (its temporaries: ~30 arrays of
+# this many float64 values).
+_CHUNK_SAMPLES = 1 << 18
 
 
 class ArcGuess(eqx.Module):
@@ -92,24 +101,6 @@ class ArcGuess(eqx.Module):
 
 
 # ----------------------------------------------------------------- pixel statistics
-
-
-def _coords(h: int, w: int):
-    """Pixel-centre coordinates (x right, y up, from the image centre) of an (h, w) grid."""
-    x = np.arange(w) + 0.5 - 0.5 * w
-    y = 0.5 * h - (np.arange(h) + 0.5)
-    return np.meshgrid(x, y)
-
-
-def _noise_estimate(img: np.ndarray) -> float:
-    """Per-pixel noise from the median absolute second difference along rows and columns
-    (robust to the arcs and to NaN pixels)."""
-    parts = [img[:, 2:] - 2.0 * img[:, 1:-1] + img[:, :-2], img[2:] - 2.0 * img[1:-1] + img[:-2]]
-    d = np.concatenate([p.ravel() for p in parts])
-    d = d[np.isfinite(d)]
-    if d.size < 8:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(6.0))
 
 
 def _smooth(img: np.ndarray) -> np.ndarray:
@@ -185,7 +176,20 @@ def _s_np(rho, r, c):
 def _model(p, xs, ys, *, jac: bool = False):
     """The model at area samples `xs`, `ys` (pixels, shape (P, k*k)), averaged a pixel,
     and with `jac` its Jacobian (P, 10) with respect to `p`: x_c, y_c, ln R, b_x, b_y,
-    ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5 px: no shadow)."""
+    ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5 px: no shadow).
+    Evaluated on at most `_CHUNK_SAMPLES` samples at a time."""
+    per = max(1, _CHUNK_SAMPLES // xs.shape[-1])
+    if xs.shape[0] <= per:
+        return _model_block(p, xs, ys, jac=jac)
+    parts = [_model_block(p, xs[i : i + per], ys[i : i + per], jac=jac)
+             for i in range(0, xs.shape[0], per)]  # fmt: skip
+    if not jac:
+        return np.concatenate(parts)
+    return np.concatenate([v for v, _ in parts]), np.concatenate([j for _, j in parts])
+
+
+def _model_block(p, xs, ys, *, jac: bool = False):
+    """`_model` on one block of samples."""
     dx, dy = xs - p[0], ys - p[1]
     rho = np.sqrt(dx * dx + dy * dy + 1e-12)
     ux, uy = dx / rho, dy / rho
@@ -250,6 +254,33 @@ def _data(x, y, v, side: float = 1.0, weight=None, k: int = 2) -> _Data:
     return _Data(x[:, None] + ox.ravel()[None], y[:, None] - oy.ravel()[None], v, wt)
 
 
+class _Pixels(eqx.Module):
+    """Every compared pixel (or bin) of an image: centres `x`, `y` (pixels from the
+    image centre), values, residual weights (P,) and side `side` (pixels). Its area
+    samples are made a chunk at a time (`_cost`), never for all of them at once."""
+
+    x: np.ndarray
+    y: np.ndarray
+    data: np.ndarray
+    weight: np.ndarray
+    side: float
+
+
+def _cost(p, px: _Pixels, k: int, view=None) -> float:
+    """The weighted residual sum of squares of the model `p` on the pixels `px` (k x k
+    area samples each; image units squared), chunk by chunk; `view`: `(f, rot)` of a
+    turned camera (`_to_view`) whose image points the model takes, or None."""
+    per = max(1, _CHUNK_SAMPLES // (k * k))
+    total = 0.0
+    for i in range(0, px.data.size, per):
+        part = slice(i, i + per)
+        d = _data(px.x[part], px.y[part], px.data[part], px.side, px.weight[part], k)
+        xs, ys = (d.xs, d.ys) if view is None else _to_view(d.xs, d.ys, *view)
+        r = (_model(p, xs, ys) - d.data) * d.weight
+        total += float(np.sum(r * r))
+    return total
+
+
 def _lm(p0, d: _Data, lower, upper, tol: float, *, steps: int = 80):
     """Levenberg-Marquardt (Marquardt's diagonal scaling) with the parameters clipped
     to [lower, upper]; stops when a step lowers the cost by less than `tol` (image
@@ -295,10 +326,14 @@ def _dilate(mask: np.ndarray, steps: int) -> np.ndarray:
     return out
 
 
-def _geometry_starts(img, x, y, floor, noise):
+def _geometry_starts(img, x, y, side, frame, floor, noise):
     """Starting geometries (x_c, y_c, R, b, psi; pixels, radians) from the bright pixels,
     their radial spread (pixels), the peak above the floor, the dark disc (x, y, radius
     in pixels; None when not seen) and the bright pixels (a boolean image).
+
+    `img`: the image (or its bins of side `side`, pixels), its columns' and rows'
+    centres `x`, `y` (pixels from the image centre), the image's size `frame` (H, W;
+    pixels), its floor and the noise of one of its pixels (or bins).
 
     The geometries: a circle through the bright pixels (the ridge, whose centre sits
     $b$ from the lens centre toward the primary) with $b$ from the flux asymmetry
@@ -307,6 +342,7 @@ def _geometry_starts(img, x, y, floor, noise):
     magnification ratio); and about the dark disc, the circle's offset from it and each
     of the two brightest groups taken as the primary or the secondary."""
     h, w = img.shape
+    big = max(frame)
     sm = _smooth(img)
     v = sm - floor
     ok = np.isfinite(v)
@@ -315,7 +351,8 @@ def _geometry_starts(img, x, y, floor, noise):
     bright = ok & (v > max(4.0 * noise / 3.0, 0.12 * peak))
     if bright.sum() < 5:
         bright = ok & (v >= np.nanpercentile(v, 99.0)) & (v > 0)
-    wt, bx, by = v[bright], x[bright], y[bright]
+    rows, cols = np.nonzero(bright)
+    wt, bx, by = v[rows, cols], x[cols], y[rows]
     shadow = None
     if floor > 1.5 * noise:
         # Smoothed floor pixels fall below half the floor with probability
@@ -323,16 +360,17 @@ def _geometry_starts(img, x, y, floor, noise):
         comps = [c for c in _components(ok & (sm < 0.5 * floor)) if c.size >= 9]
         if comps:
             c = max(comps, key=lambda c: c.size)
-            shadow = (float(x.flat[c].mean()), float(y.flat[c].mean()), math.sqrt(c.size / math.pi))
+            shadow = (float(x[c % w].mean()), float(y[c // w].mean()),
+                      side * math.sqrt(c.size / math.pi))  # fmt: skip
     spread, starts = 1.0, []
     circ = _circle_fit(bx, by, wt) if bx.size >= 5 else None
-    if circ is not None and circ[2] < 4.0 * max(h, w):
+    if circ is not None and circ[2] < 4.0 * big:
         cx, cy, rr = circ
         spread = float(np.sqrt(np.sum(wt * (np.hypot(bx - cx, by - cy) - rr) ** 2) / np.sum(wt)))
         # Flux asymmetry about the circle's centre, over the pixels whose mirror image
         # through it is in the frame and finite (so that a frame cut does not bias it).
-        mx = np.round(0.5 * w - 0.5 + 2 * cx - bx).astype(int)
-        my = np.round(0.5 * h - 0.5 - (2 * cy - by)).astype(int)
+        mx = np.round((2 * cx - bx - x[0]) / side).astype(int)
+        my = np.round((y[0] - (2 * cy - by)) / side).astype(int)
         seen = (mx >= 0) & (mx < w) & (my >= 0) & (my < h)
         seen[seen] = np.isfinite(img[my[seen], mx[seen]])
         h1 = h2 = 0j
@@ -363,7 +401,7 @@ def _geometry_starts(img, x, y, floor, noise):
         (
             f,
             np.array(
-                [np.average(x.flat[c], weights=flat[c]), np.average(y.flat[c], weights=flat[c])]
+                [np.average(x[c % w], weights=flat[c]), np.average(y[c // w], weights=flat[c])]
             ),
         )
         for f, c in groups[:2]
@@ -386,7 +424,7 @@ def _geometry_starts(img, x, y, floor, noise):
             b0 = 0.1 * rho1
             starts.append((sx, sy, math.sqrt(rho1 * (rho1 - 2 * b0)), b0, az))
             starts.append((sx, sy, math.sqrt(rho1 * (rho1 + 2 * b0)), b0, az + math.pi))
-    spread = float(np.clip(spread, 0.5, 0.25 * max(h, w)))
+    spread = float(np.clip(spread, 0.5, 0.25 * big))
     return starts, spread, max(peak, noise), shadow, bright
 
 
@@ -419,18 +457,35 @@ def _samples_for(width: float) -> int:
     return 2 if width > 0.6 else 3 if width > 0.3 else 4
 
 
-def _bins(img, x, y, b: int = 2):
-    """The image in b x b bins (the top-left b floor(H/b) x b floor(W/b) pixels):
-    bin-centre coordinates (pixels) and NaN-aware means."""
+def _bins(img, x, y, side: float, b: int = 2):
+    """The image (of pixels, or bins, of side `side` pixels centred at the columns `x`
+    and rows `y`) in b x b bins (the top-left b floor(H/b) x b floor(W/b) of them):
+    the bins' column and row centres (pixels) and NaN-aware means."""
     h, w = img.shape
     hh, ww = h // b * b, w // b * b
     a = img[:hh, :ww].reshape(hh // b, b, ww // b, b)
     n = np.isfinite(a).sum(axis=(1, 3))
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(n > 0, np.nansum(a, axis=(1, 3)) / n, np.nan)
-    xb = x[:hh:b, :ww:b] + 0.5 * (b - 1)
-    yb = y[:hh:b, :ww:b] - 0.5 * (b - 1)
+    xb = x[:ww:b] + 0.5 * (b - 1) * side
+    yb = y[:hh:b] - 0.5 * (b - 1) * side
     return xb, yb, mean
+
+
+def _binned(img, side: int):
+    """The image in `side` x `side` bins (centred crop): the means of their finite
+    pixels (NaN where fewer than half are), residual weights $\\sqrt{n} / s$ for
+    $n$ finite pixels of $s^2$ (a bin's noise is a full bin's over that), and the bins' column
+    and row centres (pixels from the image centre)."""
+    h, w = img.shape
+    hb, wb = h // side, w // side
+    r0, c0 = (h - hb * side) // 2, (w - wb * side) // 2
+    mean, count = bin_valid(img, np.isfinite(img), side)
+    mean[2 * count < side * side] = np.nan
+    x, y = pixel_centres(h, w)
+    xb = x[c0 : c0 + wb * side : side] + 0.5 * (side - 1)
+    yb = y[r0 : r0 + hb * side : side] - 0.5 * (side - 1)
+    return mean, np.sqrt(count / float(side * side)), xb, yb
 
 
 def _view(f: float, x0: float, y0: float) -> np.ndarray:
@@ -466,6 +521,10 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
     (larger on images over 40,000 pixels);
     the best one is fitted again at full resolution on the pixels near the arcs and the
     shadow's edge (the others, where the model is the floor, enter as their mean).
+    An image of more than 2^20 pixels is measured on its s x s bins, s the smallest
+    that brings it to 2^20 or fewer (a bin's value: the mean of its finite pixels, NaN
+    where fewer than half are): its memory is that of 2^20 values, and what it reports
+    is in pixels of the image all the same.
 
     A camera not pointed at the hole sees the ring through an oblique pinhole
     projection, centred about $d\\,(R/f)^2$ pixels farther out than the hole's image at
@@ -479,7 +538,7 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
       are masked out. The arcs may be cut by the frame; the hole need not be at the
       image centre.
     - `noise`: per-pixel noise standard deviation (image units), when known; default a
-      robust estimate from second differences.
+      robust estimate from second differences (`noise_level`).
     - `focal`: the camera's focal length (pixels, $(W/2)/\\tan(\\mathrm{FOV}/2)$), when
       known.
 
@@ -494,69 +553,92 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         a = a.mean(axis=-1)
     if a.ndim != 2 or min(a.shape) < 8:
         raise ValueError(f"img of shape {np.shape(img)} must be (H, W) with H, W >= 8 pixels")
-    ok = np.isfinite(a)
-    if ok.sum() < 64:
-        raise ValueError(f"img has {int(ok.sum())} finite pixels; at least 64 are needed")
+    n_ok = int(np.count_nonzero(np.isfinite(a)))
+    if n_ok < 64:
+        raise ValueError(f"img has {n_ok} finite pixels; at least 64 are needed")
     if noise is not None and not noise >= 0:
         raise ValueError(f"noise={noise!r} must be >= 0 (image units)")
     if focal is not None and not (0 < focal < math.inf):
         raise ValueError(f"focal={focal!r} must be a positive focal length (pixels)")
     h, w = a.shape
-    x, y = _coords(h, w)
-    vals = a[ok]
+    # The noise of one pixel, then (a large image) the image in bins of `side` pixels,
+    # whose noise is that over `side` (white noise).
+    sigma_px = noise_level(a) if noise is None else float(noise)
+    side = math.ceil(math.sqrt(h * w / _MAX_PIXELS)) if h * w > _MAX_PIXELS else 1
+    if side == 1:
+        x, y = pixel_centres(h, w)
+        return _measure(a, None, x, y, 1.0, (h, w), sigma_px, focal)
+    work, weight, x, y = _binned(a, side)
+    return _measure(work, weight, x, y, float(side), (h, w), sigma_px, focal)
+
+
+def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGuess:
+    """`find_arcs` on the image's pixels, or its bins: `a` their values (NaN: none),
+    `wt` their residual weights (None: all 1), `x`, `y` their column and row centres
+    and `side` their side (pixels), `frame` the image's (H, W), `sigma_px` the noise of
+    one pixel, `focal` the focal length (pixels) or None."""
+    h, w = a.shape
+    ok = np.isfinite(a)
+    rows, cols = np.nonzero(ok)
+    xo, yo, vals = x[cols], y[rows], a[rows, cols]
+    wo = np.ones(vals.size) if wt is None else wt[rows, cols]
     floor0 = float(np.median(vals))
     scale = max(float(np.max(np.abs(vals))), 1e-300)
-    sigma = max(_noise_estimate(a) if noise is None else float(noise), 1e-9 * scale)
-    flat_cost = float(np.sum((vals - vals.mean()) ** 2))
+    sigma = max(sigma_px / side, 1e-9 * scale)  # of one pixel or bin
+    mean = vals.mean() if wt is None else np.average(vals, weights=wo * wo)
+    flat_cost = float(np.sum(((vals - mean) * wo) ** 2))
     if flat_cost <= (1e-9 * scale) ** 2 * vals.size:
-        return _nothing(floor0, sigma)  # a blank image
-    starts, w0, peak, shadow, bright = _geometry_starts(a, x, y, floor0, sigma)
+        return _nothing(floor0, sigma * side)  # a blank image
+    starts, w0, peak, shadow, bright = _geometry_starts(a, x, y, side, frame, floor0, sigma)
     if not starts:
-        return _nothing(floor0, sigma)
-    lo, hi = _bounds(h, w, scale, shadow is not None)
+        return _nothing(floor0, sigma * side)
+    lo, hi = _bounds(*frame, scale, shadow is not None)
+    every = _Pixels(xo, yo, vals, wo, side)
 
     # Stage 1: every start on b x b bins (b = 2, more on images over 40,000 pixels,
     # so at most ~10,000 bins; bin noise sigma / b).
     if min(h, w) >= 48:
         b = max(2, math.ceil(math.sqrt(h * w / _STAGE1_BINS)))
-        xb, yb, mb = _bins(a, x, y, b)
-        okb = np.isfinite(mb)
-        d1, tol1 = _data(xb[okb], yb[okb], mb[okb], side=float(b)), sigma**2 / b**2
+        xb, yb, mb = _bins(a, x, y, side, b)
+        rb, cb = np.nonzero(np.isfinite(mb))
+        d1, tol1 = _data(xb[cb], yb[rb], mb[rb, cb], side=side * b), sigma**2 / b**2
     else:
-        d1, tol1 = _data(x[ok], y[ok], vals), sigma**2
-    flat1 = float(np.sum((d1.data - d1.data.mean()) ** 2))
+        d1, tol1 = _data(xo, yo, vals, side=side, weight=wo), sigma**2
+    flat1 = float(np.sum(((d1.data - d1.data.mean()) * d1.weight) ** 2))
     fits = [_lm(_params(st, w0, peak, floor0, shadow), d1, lo, hi, tol1) for st in starts]
     p, cost1 = min(fits, key=lambda fit: fit[1])
     if flat1 - cost1 < 36.0 * tol1:
         # Below 6 sigma on the bins (noise alone gains chi^2 ~ 10 with these 9
         # parameters): nothing ring-like, and no full-resolution fit.
-        return _summary(
-            p, shadow is not None, sigma, _score(p, x[ok], y[ok], vals, flat_cost, sigma)
-        )
+        return _summary(p, shadow is not None, sigma * side, _score(p, every, flat_cost, sigma))
 
     # Stage 2: full resolution where the ring's model is above 1e-4 of its peak or the
-    # image is bright, widened by 3 pixels, and on the shadow's edge; the other pixels
-    # as their mean.
+    # image is bright, widened by 3 pixels (bins), and on the shadow's edge; the other
+    # pixels as their mean.
     ring = np.zeros((h, w))
-    ring[ok] = _ring_profile(p, x[ok], y[ok])
+    ring[rows, cols] = _ring_profile(p, xo, yo)
     near = _dilate((ring > 1e-4) | bright, 3) & ok
+    del ring
     inside = np.zeros((h, w), bool)
     if shadow is not None:
-        rho = np.hypot(x - p[0], y - p[1])
-        near |= ok & (np.abs(rho - p[9]) < 3.0)
-        inside = rho < p[9] - 3.0
+        rho = np.hypot(x[None, :] - p[0], y[:, None] - p[1])
+        near |= ok & (np.abs(rho - p[9]) < 3.0 * side)
+        inside = rho < p[9] - 3.0 * side
+        del rho
     far = ok & ~near & ~inside
-    k = _samples_for(math.exp(p[5]))
-    d2 = _data(x[near], y[near], a[near], k=k)
+    k = _samples_for(math.exp(p[5]) / side)
+    nr, nc = np.nonzero(near)
+    d2 = _data(x[nc], y[nr], a[nr, nc], side=side, weight=None if wt is None else wt[nr, nc], k=k)
     if far.any():  # a pixel far away, where the model is the floor, for their mean
+        fv = a[far]
+        fw2 = np.ones(fv.size) if wt is None else wt[far] ** 2
         d2 = _Data(
             np.concatenate([d2.xs, np.full((1, k * k), 1e6)]),
             np.concatenate([d2.ys, np.full((1, k * k), 1e6)]),
-            np.append(d2.data, a[far].mean()),
-            np.append(d2.weight, math.sqrt(far.sum())),
+            np.append(d2.data, fv.mean() if wt is None else np.average(fv, weights=fw2)),
+            np.append(d2.weight, math.sqrt(fw2.sum())),
         )
-    full = _data(x[ok], y[ok], vals, k=k)
-    p, cost = _best_way_round(p, d2, full, lo, hi, 1e-2 * sigma**2)
+    p, cost = _best_way_round(p, d2, every, k, None, lo, hi, 1e-2 * sigma**2)
     rot = None
     if focal is not None:
         # Stage 3: the same pixels seen by a camera turned toward the hole's image,
@@ -564,28 +646,25 @@ def find_arcs(img, *, noise: float | None = None, focal: float | None = None) ->
         f = float(focal)
         x0, y0 = (float(v) / (1.0 + (math.exp(p[2]) / f) ** 2) for v in p[:2])
         rot = _view(f, x0, y0)
-        n = int(near.sum())
+        n = nr.size
         xs, ys = d2.xs.copy(), d2.ys.copy()
         xs[:n], ys[:n] = _to_view(d2.xs[:n], d2.ys[:n], f, rot)
         p = p.copy()
         p[:2] = 0.0
-        full = _Data(*_to_view(full.xs, full.ys, f, rot), full.data, full.weight)
         d3 = _Data(xs, ys, d2.data, d2.weight)
-        p, cost = _best_way_round(p, d3, full, lo, hi, 1e-2 * sigma**2)
+        p, cost = _best_way_round(p, d3, every, k, (f, rot), lo, hi, 1e-2 * sigma**2)
     score = math.sqrt(max(flat_cost - cost, 0.0)) / sigma
-    guess = _summary(p, shadow is not None, sigma, score)
+    guess = _summary(p, shadow is not None, sigma * side, score)
     if rot is not None:
         xc, yc = _from_view(float(p[0]), float(p[1]), float(focal), rot)
         guess = eqx.tree_at(lambda g: (g.x_c, g.y_c), guess, (xc, yc))
     return guess
 
 
-def _score(p, x, y, v, flat_cost: float, sigma: float) -> float:
-    """$\\sqrt{\\Delta\\chi^2}$ of the model `p` against a flat image, at pixels x, y
-    with values v (2 x 2 area samples)."""
-    d = _data(x, y, v)
-    r = _model(p, d.xs, d.ys) - d.data
-    return math.sqrt(max(flat_cost - float(r @ r), 0.0)) / sigma
+def _score(p, px: _Pixels, flat_cost: float, sigma: float) -> float:
+    """$\\sqrt{\\Delta\\chi^2}$ of the model `p` against a flat image, on the pixels
+    `px` (2 x 2 area samples), of noise `sigma`."""
+    return math.sqrt(max(flat_cost - _cost(p, px, 2), 0.0)) / sigma
 
 
 # Below this offset (pixels) the ring turned round is the same ring (its centre moved by
@@ -593,14 +672,15 @@ def _score(p, x, y, v, flat_cost: float, sigma: float) -> float:
 _ROUND_MIN = 0.25
 
 
-def _best_way_round(p, d: _Data, full: _Data, lo, hi, tol: float):
+def _best_way_round(p, d: _Data, every: _Pixels, k: int, view, lo, hi, tol: float):
     """The better fit, on the pixels `d`, from `p` and from `p` turned round: the same
     ridge with the primary and secondary swapped (centre moved by 2 b along psi, b
     reversed), which an arc offset of a pixel or two, or a frame cut, can leave nearly
-    as good. Compared on all the pixels `full`: a fit may move an arc off the pixels
-    `d`, where it would cost nothing.
+    as good. Compared on all the pixels `every` (k x k area samples, seen through
+    `view` as `_cost` says): a fit may move an arc off the pixels `d`, where it would
+    cost nothing.
 
-    **Returns:** the parameters and their residual sum of squares on `full`."""
+    **Returns:** the parameters and their residual sum of squares on `every`."""
     fits = [_lm(p, d, lo, hi, tol)[0]]
     if math.hypot(p[3], p[4]) > _ROUND_MIN:
         q = np.asarray(p, float).copy()
@@ -608,7 +688,7 @@ def _best_way_round(p, d: _Data, full: _Data, lo, hi, tol: float):
         q[3:5] *= -1.0
         q[6] = _shape_raw(-1.0)
         fits.append(_lm(q, d, lo, hi, tol)[0])
-    costs = [float(np.sum((_model(v, full.xs, full.ys) - full.data) ** 2)) for v in fits]
+    costs = [_cost(v, every, k, view) for v in fits]
     i = int(np.argmin(costs))
     return fits[i], costs[i]
 

@@ -12,10 +12,13 @@ from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
 from .._util import concrete
+from .pixels import pixel_edges
 from .table import escape_table
 
 
-def _chunks(n_pix: int, k: int, chunk_samples: int) -> tuple[int, int]:
+def chunk_layout(n_pix: int, k: int, chunk_samples: int) -> tuple[int, int]:
+    """How `n_pix` pixels of `k` x `k` area samples split into chunks of at most
+    `chunk_samples` samples: `(chunks, pixels a chunk)`."""
     per = max(1, chunk_samples // (k * k))
     # At least two chunks: XLA removes a loop of one trip and then fuses the table's
     # producer into every per-sample gather (measured 30x slower).
@@ -56,7 +59,7 @@ def _pixel_basis(
     shape = x0.shape
     x0, y0 = x0.ravel(), y0.ravel()
     n = x0.shape[0]
-    chunks, per = _chunks(n, k, chunk_samples)
+    chunks, per = chunk_layout(n, k, chunk_samples)
     pad = chunks * per - n
     x0 = jnp.pad(x0, (0, pad)).reshape(chunks, per)
     y0 = jnp.pad(y0, (0, pad)).reshape(chunks, per)
@@ -71,17 +74,6 @@ def _pixel_basis(
 
     out = jax.lax.map(one, (x0, y0))
     return tuple(v.reshape(-1)[:n].reshape(shape) for v in out)
-
-
-def _pixel_edges(width: int, height: int, block: int, dtype):
-    """Left/top edges (full-image pixels from the centre) of the `block` x `block`
-    bins of a `width` x `height` image, centred crop when the size does not divide
-    (numpy: host-side constants, no dispatch for each bin size)."""
-    wb, hb = width // block, height // block
-    c0, r0 = (width - wb * block) // 2, (height - hb * block) // 2
-    x0 = (c0 + block * np.arange(wb) - 0.5 * width).astype(dtype)
-    y0 = (0.5 * height - (r0 + block * np.arange(hb))).astype(dtype)
-    return np.broadcast_to(x0[None, :], (hb, wb)), np.broadcast_to(y0[:, None], (hb, wb))
 
 
 def ring_image(
@@ -139,7 +131,7 @@ def ring_image(
     dtype = distance.dtype
     table = escape_table(distance)
     focal = 0.5 * width / jnp.tan(0.5 * jnp.asarray(fov, dtype))
-    x0, y0 = _pixel_edges(width, height, 1, dtype)
+    x0, y0 = pixel_edges(width, height, 1, dtype)
     g, t, c = _pixel_basis(
         table, focal, jnp.asarray(sigma, dtype), x0, y0, width=width, block=1, k=int(supersample)
     )
@@ -164,7 +156,7 @@ def _checked(value, name, ok, valid):
     return eqx.error_if(value, jnp.any(bad), f"{name} must be {valid}")
 
 
-def _samples_for(ring_width_px, block, lowest: int = 2):
+def samples_for(ring_width_px, block, lowest: int = 2):
     """Gauss-Legendre order $k$ for a ring of radial Gaussian width `ring_width_px`
     (full pixels) in pixels of side `block`: of the orders 2, 3, 4, 6 and 8 (none
     below `lowest`) the smallest whose error on a 1-D Gaussian is below ~4e-5 of its
@@ -176,3 +168,9 @@ def _samples_for(ring_width_px, block, lowest: int = 2):
         if k >= lowest and ratio >= least:
             return k
     return 8
+
+
+# Former names, kept while modules outside this one still import them by these.
+_chunks = chunk_layout
+_pixel_edges = pixel_edges
+_samples_for = samples_for

@@ -8,7 +8,42 @@ import equinox as eqx
 import numpy as np
 
 from .._io import read_pixels, srgb_decode, transfer_of
-from .model import _pixel_edges
+
+# Pixels a strip of the image holds when it is binned strip by strip (the temporaries
+# of one strip, not of the whole image).
+_STRIP_PIXELS = 1 << 20
+
+
+def pixel_centres(height: int, width: int, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel-centre coordinates of a `height` x `width` image, in pixels from the
+    image centre: `x` (length `width`, right) and `y` (length `height`, up; row 0 at
+    the top). Column $i$ is at $x = i + 1/2 - W/2$, row $j$ at $y = H/2 - j - 1/2$;
+    broadcast them as `x[None, :]`, `y[:, None]` rather than building 2-D grids.
+
+    **Returns:** `(x, y)`, 1-D arrays of `dtype` (exact: half-integers).
+    """
+    if min(height, width) < 1:
+        raise ValueError(f"an image of {width} x {height} pixels has no pixel centres")
+    x = (np.arange(width) + 0.5 - 0.5 * width).astype(dtype)
+    y = (0.5 * height - (np.arange(height) + 0.5)).astype(dtype)
+    return x, y
+
+
+def pixel_edges(width: int, height: int, block: int, dtype):
+    """Left/top edges (full-image pixels from the centre) of the `block` x `block`
+    bins of a `width` x `height` image, centred crop when the size does not divide:
+    `pixel_centres` moved half a pixel, every `block`-th (numpy: host-side constants,
+    no dispatch for each bin size).
+
+    **Returns:** `(x0, y0)`, read-only `(H // block, W // block)` broadcast views of
+    1-D arrays of `dtype`.
+    """
+    wb, hb = width // block, height // block
+    c0, r0 = (width - wb * block) // 2, (height - hb * block) // 2
+    x, y = pixel_centres(height, width)
+    x0 = (x[c0 : c0 + wb * block : block] - 0.5).astype(dtype)
+    y0 = (y[r0 : r0 + hb * block : block] + 0.5).astype(dtype)
+    return np.broadcast_to(x0[None, :], (hb, wb)), np.broadcast_to(y0[:, None], (hb, wb))
 
 
 def read_observation(path) -> np.ndarray:
@@ -75,21 +110,36 @@ def _as_gray(image) -> tuple[np.ndarray, str | None]:
     return img, transfer
 
 
-def _bin(img, block):
+def bin_means(img, block):
     """Means of the `block` x `block` bins of an image (centred crop)."""
-    return _bin_valid(img, np.ones(img.shape, bool), block)[0]
+    return bin_valid(img, None, block)[0]
 
 
-def _bin_valid(img, valid, block):
-    """Means over the `valid` pixels of the `block` x `block` bins of an image (centred
-    crop when the size does not divide; 0 where a bin has none), and their counts."""
+def bin_valid(img, valid, block):
+    """Means over the `valid` pixels (`None`: all) of the `block` x `block` bins of an
+    image (centred crop when the size does not divide; 0 where a bin has none), and
+    their counts. Strip by strip: the temporaries are a strip's, not the image's.
+
+    **Returns:** `(means, counts)`, float64 and int `(H // block, W // block)`.
+    """
     h, w = img.shape
     hb, wb = h // block, w // block
     r0, c0 = (h - hb * block) // 2, (w - wb * block) // 2
-    crop = np.where(valid, img, 0.0)[r0 : r0 + hb * block, c0 : c0 + wb * block]
-    cnt = valid[r0 : r0 + hb * block, c0 : c0 + wb * block]
-    s = crop.reshape(hb, block, wb, block).sum(axis=(1, 3))
-    n = cnt.reshape(hb, block, wb, block).sum(axis=(1, 3))
+    s = np.empty((hb, wb))
+    n = np.empty((hb, wb), np.int64)
+    step = max(1, _STRIP_PIXELS // max(wb * block * block, 1))  # bin rows a strip
+    cols = slice(c0, c0 + wb * block)
+    for i in range(0, hb, step):
+        j = min(i + step, hb)
+        rows = slice(r0 + i * block, r0 + j * block)
+        part = img[rows, cols]
+        if valid is None:
+            s[i:j] = part.reshape(j - i, block, wb, block).sum(axis=(1, 3))
+            n[i:j] = block * block
+        else:
+            ok = valid[rows, cols]
+            s[i:j] = np.where(ok, part, 0.0).reshape(j - i, block, wb, block).sum(axis=(1, 3))
+            n[i:j] = ok.reshape(j - i, block, wb, block).sum(axis=(1, 3))
     return np.where(n > 0, s / np.maximum(n, 1), 0.0), n
 
 
@@ -134,11 +184,11 @@ class _PixelSets(eqx.Module):
         return out
 
 
-def _grid_sets(img, valid, block) -> _PixelSets:
+def grid_sets(img, valid, block) -> _PixelSets:
     """Every `block` x `block` bin (centred crop), as one set."""
     h, w = img.shape
-    data, count = _bin_valid(img, valid, block)
-    x0, y0 = (np.asarray(v).ravel() for v in _pixel_edges(w, h, block, np.float64))
+    data, count = bin_valid(img, valid, block)
+    x0, y0 = (np.asarray(v).ravel() for v in pixel_edges(w, h, block, np.float64))
     cols = np.round(x0 + 0.5 * w).astype(int)
     rows = np.round(0.5 * h - y0).astype(int)
     empty = (np.zeros(0), np.zeros(0))
@@ -146,8 +196,8 @@ def _grid_sets(img, valid, block) -> _PixelSets:
                       np.full(x0.size, block), block, 0, (h, w))  # fmt: skip
 
 
-def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=None,
-                centre=(0.0, 0.0), structure=None) -> _PixelSets:  # fmt: skip
+def pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=None,
+               centre=(0.0, 0.0), structure=None) -> _PixelSets:  # fmt: skip
     """Full resolution (or bins of `block`, the finest the ring allows) on the shadow
     edge, the ring and wherever the image shows light; where the image is flat (inside
     the shadow, the far sky) blocks q times larger, q the factor that gives the fewest
@@ -171,7 +221,7 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
             block += 1
     block = int(block)
     if (h // block) * (w // block) <= max_pixels:
-        return _grid_sets(img, valid, block)
+        return grid_sets(img, valid, block)
     ring_lo = prof.ring_radius - 6.0 * prof.ring_width - 3.0
     ring_hi = prof.ring_radius + 6.0 * prof.ring_width + 3.0
     edges = [r for r in (rho_sh, prof.shadow_radius) if math.isfinite(r)]
@@ -185,7 +235,7 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
             hb, wb = h // big, w // big
             if hb < 2 or wb < 2 or (best is not None and big >= min(h, w) // 4):
                 break
-            bx, by = (np.asarray(v) for v in _pixel_edges(w, h, big, np.float64))
+            bx, by = (np.asarray(v) for v in pixel_edges(w, h, big, np.float64))
             rc = np.hypot(bx + 0.5 * big - centre[0], by - 0.5 * big - centre[1])
             half = big / math.sqrt(2.0)
             lo_r, hi_r = rc - half, rc + half
@@ -195,7 +245,7 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
             r0, c0 = (h - hb * big) // 2, (w - wb * big) // 2
             crop = (slice(r0, r0 + hb * big), slice(c0, c0 + wb * big))
             if structure is not None:
-                mean, _ = _bin_valid(img[crop], valid[crop], big)
+                mean, _ = bin_valid(img[crop], valid[crop], big)
                 sel |= mean > structure
             n = int(sel.sum()) * q * q + int((~sel).sum())
             if best is None or n < best[0]:
@@ -220,7 +270,7 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
     f_cnt = valid[win].sum(axis=(1, 2))
     f_sum = np.where(valid[win], img[win], 0.0).sum(axis=(1, 2))
     fine = np.where(f_cnt > 0, f_sum / np.maximum(f_cnt, 1), 0.0)
-    coarse, c_cnt = _bin_valid(img[crop], valid[crop], big)
+    coarse, c_cnt = bin_valid(img[crop], valid[crop], big)
     c_cols = np.round(bx[~sel] + 0.5 * w).astype(int)
     c_rows = np.round(0.5 * h - by[~sel]).astype(int)
     return _PixelSets(
@@ -230,3 +280,8 @@ def _pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=
         np.concatenate([np.full(fine.size, block), np.full(c_cols.size, big)]), block, big,
         (h, w),
     )  # fmt: skip
+
+
+# Former names, kept while modules outside this one still import them by these.
+_grid_sets = grid_sets
+_pixel_sets = pixel_sets

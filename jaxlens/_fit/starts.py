@@ -14,9 +14,8 @@ from .._area import rect_in_disc
 from .._compile import program
 from .._util import to_device
 from . import ring_table_data
-from .model import _pixel_edges
 from .noise import clipped_mean, clipped_slope, clipping_bounds, noise_clipped, noise_level
-from .pixels import _bin
+from .pixels import bin_means, pixel_centres, pixel_edges
 from .spd import solve_spd
 from .table import escape_table, solve_with_slope
 
@@ -72,7 +71,7 @@ def _radial_weights(width: int, height: int, block: int, ring_width: float):
     """How a radial profile on a grid of radii averages over square bins (host-side
     numpy, once an image).
 
-    The bins: `block` x `block` pixels of a `width` x `height` image (`_pixel_edges`);
+    The bins: `block` x `block` pixels of a `width` x `height` image (`pixel_edges`);
     `ring_width`: the ring's radial Gaussian width (pixels), which sets the grid's
     spacing $h$. Bins that are mirror images of each other about the centre's axes or
     diagonals see the same radial profile: one of each set is kept (a quarter of the
@@ -88,7 +87,7 @@ def _radial_weights(width: int, height: int, block: int, ring_width: float):
     (row-major) the kept bin it mirrors, and the number of bins each kept one stands
     for (numpy).
     """
-    x0, y0 = _pixel_edges(width, height, block, np.float64)
+    x0, y0 = pixel_edges(width, height, block, np.float64)
     # Twice the centres' distances from the axes, whole numbers: exact keys.
     cx = np.rint(np.abs(2.0 * np.ravel(x0) + block)).astype(np.int64)
     cy = np.rint(np.abs(2.0 * np.ravel(y0) - block)).astype(np.int64)
@@ -250,14 +249,28 @@ class _Profile(eqx.Module):
     shadow_radius: float  # nan when no dark disc against a floor is seen
 
 
-def _profile(img) -> _Profile:
+# Pixels of a strip of rows the radial profile sums at a time (its temporaries).
+_STRIP_PIXELS = 1 << 20
+
+
+def radial_profile(img) -> _Profile:
+    """The radial profile of an image about its centre, in 0.5-pixel rings of radius,
+    and what it shows of a ring (`_Profile`: pixels, data units). Summed strip by
+    strip of rows: no temporary the image's size."""
     h, w = img.shape
-    yy, xx = np.mgrid[0:h, 0:w]
-    rho = np.hypot(xx + 0.5 - 0.5 * w, 0.5 * h - (yy + 0.5))
+    x, y = pixel_centres(h, w)
     dr = 0.5
-    idx = np.floor(rho / dr).astype(int).ravel()
-    cnt = np.bincount(idx)
-    tot = np.bincount(idx, weights=img.ravel())
+    n = int(math.hypot(x[-1], y[0]) / dr) + 2  # past the farthest pixel centre's ring
+    cnt = np.zeros(n, np.int64)
+    tot = np.zeros(n)
+    last = 0
+    rows = max(1, _STRIP_PIXELS // w)
+    for r in range(0, h, rows):
+        idx = np.floor(np.hypot(x[None, :], y[r : r + rows, None]) / dr).astype(np.intp).ravel()
+        last = max(last, int(idx.max()))
+        cnt += np.bincount(idx, minlength=n)
+        tot += np.bincount(idx, weights=img[r : r + rows].ravel(), minlength=n)
+    cnt, tot = cnt[: last + 1], tot[: last + 1]
     ok = cnt > 0
     r_mid = (np.arange(cnt.size) + 0.5) * dr
     prof = np.interp(r_mid, r_mid[ok], tot[ok] / np.maximum(cnt[ok], 1))
@@ -386,7 +399,7 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     of one original pixel)."""
     h, w = img.shape
     coarse = max(1, round(min(h, w) / 40))
-    cimg = _bin(img, coarse)
+    cimg = bin_means(img, coarse)
     setup0 = _Setup(0.5 * w, 1024)
     radial, group, count = _radial_weights(w, h, coarse, prof.ring_width)
     y = cimg.ravel() / scale
@@ -448,3 +461,7 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
     best = int(np.argmin(loss))
     d_s, fov_s, sig_s = float(cands[best][0]), float(fovs[best]), float(sig[best])
     return d_s, fov_s, sig_s, float(amp[best]), float(flo[best]), lo, hi, noise
+
+
+# Former name, kept while modules outside this one still import it by it.
+_profile = radial_profile
