@@ -253,10 +253,12 @@ class _Profile(eqx.Module):
 _STRIP_PIXELS = 1 << 20
 
 
-def radial_profile(img) -> _Profile:
+def radial_profile(img, noise: float | None = None) -> _Profile:
     """The radial profile of an image about its centre, in 0.5-pixel rings of radius,
     and what it shows of a ring (`_Profile`: pixels, data units). Summed strip by
-    strip of rows: no temporary the image's size."""
+    strip of rows: no temporary the image's size. `noise`: the noise of one pixel
+    (data units) when known; default `noise_level(img)` (the one step that takes
+    temporaries of the image's size: give it where the caller has it)."""
     h, w = img.shape
     x, y = pixel_centres(h, w)
     dr = 0.5
@@ -276,7 +278,7 @@ def radial_profile(img) -> _Profile:
     prof = np.interp(r_mid, r_mid[ok], tot[ok] / np.maximum(cnt[ok], 1))
     smooth = np.convolve(prof, np.ones(3) / 3.0, mode="same")
     smooth[0], smooth[-1] = prof[0], prof[-1]
-    noise = noise_level(img)
+    noise = noise_level(img) if noise is None else float(noise)
     i_pk = int(np.argmax(smooth[1:-1])) + 1 if smooth.size > 2 else int(np.argmax(smooth))
     # Sub-bin peak position (parabola through the three bins about the maximum).
     if 0 < i_pk < smooth.size - 1:
