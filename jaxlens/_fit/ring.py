@@ -10,7 +10,7 @@ from .._util import host_driver
 from .fit_result import Fit
 from .general import fit
 from .pixels import _as_gray
-from .starts import _profile
+from .starts import radial_profile
 
 TRANSFERS = ("auto", "srgb", "linear")
 
@@ -80,7 +80,7 @@ def fit_ring(
     # arcs). The values are `fit`'s to read and decode; these checks need only their
     # shape, which a monotonic decoding keeps.
     img, _ = _as_gray(image)
-    prof = _profile(img)
+    prof = radial_profile(img)
     if not prof.peak > 8.0 * prof.peak_noise:
         raise ValueError(
             f"no ring found: the radial profile about the image centre peaks "
