@@ -1,4 +1,5 @@
-"""A large render with every effect against the bare scene: wall time and peak memory.
+"""Peak memory of large images: a render with every effect against the bare scene, and
+a ring fit.
 
 The scene (`SCENE_TOML` below, and the same built in Python): a camera on a circular
 orbit (`CircularOrbit`) at D = 20 R_S, FOV 60 deg, one sample a pixel, float32 pixels
@@ -19,10 +20,21 @@ of that child (`os.wait4`), and for the API cases also the child's own `VmHWM` b
 and after the renders. The report gives the ratios effects / bare, and XLA's memory
 accounting of one compiled block (`jl.block_memory`) of each scene.
 
+The fit case: a 4096 x 4096 Einstein ring (`jl.ring_image`, D = 20 R_S, FOV 40 deg,
+sigma 0.03 rad, floor 0.05, 2 x 2 area samples a pixel, Gaussian noise 0.01) is drawn
+by one fresh process and saved; another loads it and runs `jl.fit_ring` on it, its
+peak resident set `ru_maxrss` (`os.wait4`) and its own `VmHWM` before the fit. With
+`--baseline DIR` the same fit runs again with `jaxlens` imported from DIR (a copy of
+another commit's tree, e.g. `git archive <commit> | tar -x -C DIR`): before and after
+a change, on the same image and machine.
+
 Results: `benchmarks/results/memory.md` (or `$JAXLENS_BENCH_RESULTS/memory.md`);
-`--quick` renders 512 x 512 and writes to a temporary folder unless `--out` is given.
+`--quick` renders 512 x 512 and writes to a temporary folder unless `--out` is given;
+`--case render` or `--case fit` runs one of the two and keeps the other's section of
+the existing file.
 
     .venv/bin/python benchmarks/bench_memory.py [--size 4096] [--quick] [--out FILE]
+        [--case all|render|fit] [--baseline DIR]
 """
 
 import argparse
@@ -110,12 +122,60 @@ print(json.dumps({
 """
 
 
-def _run(cmd, env):
-    """Run `cmd` to completion; its own peak RSS (MiB) from `os.wait4`, wall time, and
-    stdout. stderr (the progress bar) goes to ours."""
+# The fit case's image, drawn by a fresh interpreter: argv = root, size, .npy path.
+_RING_CHILD = r"""
+import math, sys
+sys.path.insert(0, sys.argv[1] + "/benchmarks")
+from _common import np  # noqa: E402  (float64 enabled)
+import jaxlens as jl  # noqa: E402
+
+size = int(sys.argv[2])
+img = np.asarray(jl.ring_image(20.0, math.radians(40.0), size, size, sigma=0.03,
+                               brightness=1.0, floor=0.05, supersample=2))
+img = img + 0.01 * np.random.default_rng(1).standard_normal(img.shape)
+np.save(sys.argv[3], img)
+"""
+
+# The fit case, run by a fresh interpreter: argv = .npy path. `jaxlens` is the one on
+# PYTHONPATH (this checkout's, or the baseline's). Prints one JSON line.
+_FIT_CHILD = r"""
+import json, math, sys, time
+t_start = time.perf_counter()
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+import jaxlens as jl
+
+
+def hwm():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024  # MiB
+    return float("nan")
+
+
+img = np.load(sys.argv[1])
+base = hwm()
+t = time.perf_counter()
+f = jl.fit_ring(img)
+fit_s = time.perf_counter() - t
+# A `Fit` (values in a dict) or an older `RingFit` (values as fields).
+v = getattr(f, "values", None) or {n: getattr(f, n) for n in ("distance", "fov", "sigma")}
+print(json.dumps({
+    "fit_s": fit_s, "process_s": time.perf_counter() - t_start, "base_mib": base,
+    "hwm_mib": hwm(), "distance": float(v["distance"]), "fov_deg": math.degrees(v["fov"]),
+    "sigma": float(v["sigma"]), "converged": bool(f.converged), "n_pixels": int(f.n_pixels),
+    "block": int(f.block), "jaxlens": jl.__file__,
+}))
+"""
+
+
+def _run(cmd, env, cwd=None):
+    """Run `cmd` (in the folder `cwd`) to completion; its own peak RSS (MiB) from
+    `os.wait4`, wall time, and stdout. stderr (the progress bar) goes to ours."""
     with tempfile.TemporaryFile("w+") as out:
         t = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out, env=env)
+        proc = subprocess.Popen(cmd, stdout=out, env=env, cwd=cwd)
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t
         proc.returncode = os.waitstatus_to_exitcode(status)
@@ -161,6 +221,34 @@ def measure(size: int, warm: int, folder: pathlib.Path) -> dict:
     return out
 
 
+def measure_fit(size: int, folder: pathlib.Path, baseline: pathlib.Path | None) -> dict:
+    """The fit case: the ring image drawn once, then fitted by this checkout's jaxlens
+    and (with `baseline`) by the baseline's, each in a fresh process."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(_common.ROOT), env.get("PYTHONPATH", "")])
+    npy = folder / "ring.npy"
+    print(f"--- fit: drawing the {size} x {size} ring", file=sys.stderr, flush=True)
+    draw_peak, draw_s, _ = _run([sys.executable, "-c", _RING_CHILD, str(_common.ROOT),
+                                 str(size), str(npy)], env)  # fmt: skip
+    out = {"draw": {"peak_mib": draw_peak, "wall_s": draw_s}}
+    sources = [("this checkout", _common.ROOT)]
+    if baseline is not None:
+        sources.append((f"baseline ({baseline.name})", baseline.resolve()))
+    for name, root in sources:
+        print(f"--- fit: jl.fit_ring, jaxlens from {root}", file=sys.stderr, flush=True)
+        run_env = dict(
+            env, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])
+        )
+        # Run in `root`: `python -c` puts the working folder first on the path.
+        peak, wall, text = _run([sys.executable, "-c", _FIT_CHILD, str(npy)], run_env, root)
+        rec = json.loads(text.strip().splitlines()[-1])
+        if not rec["jaxlens"].startswith(str(root)):
+            raise RuntimeError(f"the fit imported {rec['jaxlens']}, not jaxlens from {root}")
+        rec.update(peak_mib=peak, wall_s=wall)
+        out[name] = rec
+    return out
+
+
 def block_accounting(size: int) -> dict:
     """XLA's memory accounting of one compiled block of each scene (in this process)."""
     import numpy as np
@@ -182,7 +270,11 @@ def _ratio(a, b):
     return f"{a / b:.2f}" if a and b else "-"
 
 
-def write_report(path, size, load, res, blocks):
+_MARK = "<!-- section: {} -->"
+
+
+def render_section(size, load, res, blocks) -> list[str]:
+    """The render case's section of the report (markdown lines)."""
     mib = 2**20
     image_mib = size * size * 3 * 4 / mib
     a_b, a_e = res[("api", "bare")], res[("api", "effects")]
@@ -192,9 +284,8 @@ def write_report(path, size, load, res, blocks):
         return "-" if r["warm_s"] is None else f"{r['warm_s']:.2f}"
 
     lines = [
-        f"# A {size} x {size} render with every effect against the bare scene",
-        "",
-        "Written by [`benchmarks/bench_memory.py`](../bench_memory.py).",
+        _MARK.format("render"),
+        f"## A {size} x {size} render with every effect against the bare scene",
         "",
         f"- Load average at the start: {load:.2f} (1 minute; wall times move with it)",
         _common.machine_markdown().rstrip("\n"),
@@ -207,7 +298,7 @@ def write_report(path, size, load, res, blocks):
         "process's own maximum resident set (`ru_maxrss` from `os.wait4`). The float32",
         f"image alone is {image_mib:.0f} MiB.",
         "",
-        "## Python API: `jl.render(scene, dtype=float32, progress=True)`",
+        "### Python API: `jl.render(scene, dtype=float32, progress=True)`",
         "",
         "| scene | first render s (compile included) | warm render s | process s |"
         " peak RSS MiB | RSS before the render MiB | blocks | stages |",
@@ -231,7 +322,7 @@ def write_report(path, size, load, res, blocks):
         f"{'yes' if a_e['same_as_toml'] and a_b['same_as_toml'] else 'NO'} "
         "(`eqx.tree_equal` with `jl.load_scene`).",
         "",
-        f"## CLI: `jaxlens render scene.toml -o out.exr --size {size}x{size}`",
+        f"### CLI: `jaxlens render scene.toml -o out.exr --size {size}x{size}`",
         "",
         "The whole process: start-up, imports, compile, render, writing the EXR.",
         "",
@@ -244,7 +335,7 @@ def write_report(path, size, load, res, blocks):
         f"| **effects / bare** | {_ratio(c_e['wall_s'], c_b['wall_s'])} | "
         f"**{_ratio(c_e['peak_mib'], c_b['peak_mib'])}** | |",
         "",
-        "## One compiled block (`jl.block_memory`, XLA's accounting)",
+        "### One compiled block (`jl.block_memory`, XLA's accounting)",
         "",
         "| scene | temp MiB | output MiB | arguments MiB | area samples a block | blocks |",
         "|---|---:|---:|---:|---:|---:|",
@@ -256,8 +347,64 @@ def write_report(path, size, load, res, blocks):
             f"{b['arguments'] / mib:.1f} | {p.samples} | {p.blocks} |"
         )
     lines += ["", "The plan of the effects scene:", "", "```", a_e["plan"], "```", ""]
+    return lines
+
+
+def fit_section(size, load, fit) -> list[str]:
+    """The fit case's section of the report (markdown lines)."""
+    image_mib = size * size * 8 / 2**20
+    lines = [
+        _MARK.format("fit"),
+        f"## A {size} x {size} ring fit: `jl.fit_ring(image)`",
+        "",
+        f"- Load average at the start: {load:.2f} (1 minute; wall times move with it)",
+        _common.machine_markdown().rstrip("\n"),
+        "",
+        "The image: `jl.ring_image` at D = 20 R_S, FOV 40 deg, sigma 0.03 rad, floor 0.05,",
+        f"2 x 2 area samples a pixel, Gaussian noise 0.01; float64, {image_mib:.0f} MiB. Drawn by",
+        f"one fresh process (peak RSS {fit['draw']['peak_mib']:.0f} MiB, "
+        f"{fit['draw']['wall_s']:.0f} s), saved, and loaded by",
+        "each fit's own fresh process: *peak RSS* is the fit process's maximum resident set",
+        "(`ru_maxrss` from `os.wait4`), *RSS before the fit* its `VmHWM` once the image is",
+        "loaded (imports and the image).",
+        "",
+        "| jaxlens | process s | fit s | peak RSS MiB | RSS before the fit MiB | D R_S | FOV deg "
+        "| sigma rad | converged | compared bins | bin px |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|",
+    ]
+    for name, r in fit.items():
+        if name == "draw":
+            continue
+        lines.append(
+            f"| {name} | {r['wall_s']:.1f} | {r['fit_s']:.1f} | {r['peak_mib']:.0f} | "
+            f"{r['base_mib']:.0f} | {r['distance']:.4f} | {r['fov_deg']:.4f} | "
+            f"{r['sigma']:.5f} | {'yes' if r['converged'] else 'NO'} | {r['n_pixels']} | "
+            f"{r['block']} |"
+        )
+    lines.append("")
+    return lines
+
+
+def write_report(path, sections: dict):
+    """The report: the sections given (`{"render": lines, "fit": lines}`), and for a
+    case not run this time its section from the existing file."""
+    old = path.read_text() if path.exists() else ""
+    parts = [
+        "# Peak memory of large images: a render and a fit",
+        "",
+        "Written by [`benchmarks/bench_memory.py`](../bench_memory.py).",
+        "",
+    ]
+    for case in ("render", "fit"):
+        if case in sections:
+            parts += sections[case]
+            continue
+        mark = _MARK.format(case)
+        if mark in old:
+            kept = old.split(mark, 1)[1].split("<!-- section: ", 1)[0]
+            parts += [mark + kept.rstrip("\n"), ""]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines))
+    path.write_text("\n".join(parts))
 
 
 def main(argv=None):
@@ -267,18 +414,27 @@ def main(argv=None):
                     help="512 x 512, report in a temporary folder (a smoke test)")  # fmt: skip
     ap.add_argument("--warm", type=int, default=1, help="warm API renders timed (default 1)")
     ap.add_argument("--out", type=pathlib.Path, default=None, help="the markdown file")
+    ap.add_argument("--case", choices=("all", "render", "fit"), default="all",
+                    help="the cases run (the other's section of the file is kept)")  # fmt: skip
+    ap.add_argument("--baseline", type=pathlib.Path, default=None,
+                    help="a tree whose jaxlens the fit also runs (before a change)")  # fmt: skip
     args = ap.parse_args(argv)
     size = args.size or (512 if args.quick else 4096)
-    load = _common.load_average()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="jaxlens-bench-memory-") as tmp:
         tmp = pathlib.Path(tmp)
-        res = measure(size, args.warm, tmp)
-        blocks = block_accounting(size)
+        sections = {}
+        if args.case in ("all", "render"):
+            load = _common.load_average()
+            res = measure(size, args.warm, tmp)
+            sections["render"] = render_section(size, load, res, block_accounting(size))
+        if args.case in ("all", "fit"):
+            load = _common.load_average()
+            sections["fit"] = fit_section(size, load, measure_fit(size, tmp, args.baseline))
         out = args.out
         if out is None:
             out = (tmp / "memory.md") if args.quick else _common.RESULTS / "memory.md"
-        write_report(out, size, load, res, blocks)
+        write_report(out, sections)
         print(out.read_text())
         if args.quick and args.out is None:
             print("(quick run: the report above was not kept; --out FILE keeps it)")
