@@ -105,6 +105,7 @@ def test_blur_without_psf_is_flagged_naming_the_psf(blurred_png):
     assert not fit.valid and "psf" in fit.message.lower(), _said(fit)
 
 
+@pytest.mark.benchmark  # ~40 s (the slowest here); the fit benchmark's arcs have PSFs of 1-2 px
 def test_blur_with_its_psf_is_right(blurred_png):
     fit = jl.fit_ring(blurred_png, star_sigma=STAR, transfer="linear", psf=2.0)
     assert fit.valid and _honest(fit), _said(fit)
