@@ -420,7 +420,8 @@ def run_files(n, folder):
             t0 = time.perf_counter()
             clean[si] = ring_image(d, math.radians(fov), w, h, math.radians(sig), amp, floor)
             t_render = time.perf_counter() - t0
-        rng = np.random.default_rng([2028, si, ci])
+        # one noise draw a scene and bit depth: --transfer linear and auto fit the same file
+        rng = np.random.default_rng([2028, si, bits])
         path, t_file = user_file(kind, bits, scene, clean.get(si), rng, folder, f"file{i:02d}")
         extra = [] if transfer == "auto" else ["--transfer", transfer]
         out, wall = fit_file(path, sig, extra)
