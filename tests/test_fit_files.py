@@ -126,7 +126,7 @@ def test_ring_clipped_at_one_is_flagged_or_right(folder):
 
 
 def test_tiny_ring_is_refused_or_flagged(folder):
-    # 16 x 12 pixels: the ring's radius is ~6 px and its width ~0.5 px
+    # 16 x 12 pixels: the ring is ~5 px in radius and under a pixel wide
     path = _png16(folder, "tiny16.png", ui.ring(16, 12, noise=0.01, seed=4))
     try:
         fit = jl.fit_ring(path, star_sigma=STAR, transfer="linear")
