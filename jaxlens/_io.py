@@ -887,8 +887,9 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
     """Every channel of an image file as stored, as float32 `(H, W, C)` (OpenImageIO;
     integer formats normalised to [0, 1], no colour-space decoding), and a dict of what
     the file says: `space` (colour space, lower case), `format`, `alpha` (the alpha
-    channel's index, -1 if none) and `unassociated` (whether the colour is not
-    multiplied by alpha; asked for with `unassociated_alpha`).
+    channel's index, -1 if none), `unassociated` (whether the colour is not
+    multiplied by alpha; asked for with `unassociated_alpha`) and `tagged` (whether the
+    file states its colour space: `colour_tag`).
 
     Raises `ValueError` naming the file when it is missing, empty, not an image,
     truncated or otherwise unreadable, or too large for the memory available.
@@ -924,6 +925,7 @@ def read_pixels(path, *, unassociated_alpha: bool = False) -> tuple[np.ndarray, 
             "format": str(spec.format),
             "alpha": spec.alpha_channel,
             "unassociated": bool(spec.get_int_attribute("oiio:UnassociatedAlpha", 0)),
+            "tagged": colour_tag(path, spec),
         }
     finally:
         inp.close()
@@ -945,10 +947,59 @@ def transfer_of(info) -> str:
     """How a file's stored values relate to linear light, from `read_pixels`' `info`:
     `"srgb"` for 8- and 16-bit files tagged sRGB or untagged (the default of PNG and
     JPEG; OpenImageIO reports both as sRGB), `"linear"` for float files and integer
-    files tagged linear (e.g. a PNG whose gAMA chunk is 1.0)."""
+    files tagged linear (e.g. a PNG whose gAMA chunk is 1.0). `info["tagged"]` says
+    whether the file itself said so (`colour_tag`)."""
     integer = info["format"].startswith(("uint", "int"))
     space = info["space"]
-    return "srgb" if integer and ("srgb" in space or space == "") else "linear"
+    # A gamma-encoded file (a PNG's gAMA of 1/2.2: OpenImageIO's "g22_rec709_scene") is
+    # decoded as sRGB, whose curve is within 0.009 of a 2.2 power's.
+    gamma = space.startswith(("g22", "g18", "gamma"))
+    return "srgb" if integer and ("srgb" in space or space == "" or gamma) else "linear"
+
+
+# PNG chunks that state how the stored values relate to light (PNG 1.2, 11.3.3).
+_PNG_COLOUR_CHUNKS = (b"sRGB", b"iCCP", b"gAMA")
+
+
+def _png_colour_chunks(path) -> set[bytes]:
+    """The colour chunks (`_PNG_COLOUR_CHUNKS`) a PNG file holds before its image data:
+    the chunk headers are read, not the pixels."""
+    found = set()
+    with open(path, "rb") as f:
+        if f.read(8) != b"\x89PNG\r\n\x1a\n":
+            return found
+        while True:
+            head = f.read(8)
+            if len(head) < 8:
+                return found
+            size, kind = int.from_bytes(head[:4], "big"), head[4:]
+            if kind in (b"IDAT", b"IEND"):
+                return found
+            if kind in _PNG_COLOUR_CHUNKS:
+                found.add(kind)
+            f.seek(size + 4, 1)  # the chunk's data and CRC
+
+
+def colour_tag(path, spec) -> bool:
+    """Whether an image file states how its values relate to light: float formats
+    (linear by definition); a PNG with an sRGB, iCCP or gAMA chunk; another format with
+    an ICC profile, an Exif colour space, a gamma, or (not JPEG) a colour space
+    OpenImageIO read from the file. OpenImageIO reports an untagged 8/16-bit PNG or
+    JPEG as sRGB, their formats' default, so its colour space alone cannot tell."""
+    if str(spec.format).startswith(("half", "float", "double")):
+        return True
+    with open(path, "rb") as f:
+        png = f.read(8) == b"\x89PNG\r\n\x1a\n"
+    if png:
+        return bool(_png_colour_chunks(path))
+    names = {a.name for a in spec.extra_attribs}
+    if "ICCProfile" in names or "oiio:Gamma" in names:
+        return True
+    if spec.get_int_attribute("Exif:ColorSpace", 0) == 1:  # 1: sRGB (Exif 2.3, 4.6.5)
+        return True
+    jpeg = spec.get_string_attribute("jpeg:subsampling", "") != "" or Path(path).suffix.lower() in (
+        ".jpg", ".jpeg")  # fmt: skip
+    return "oiio:ColorSpace" in names and not jpeg
 
 
 def read_image(path) -> np.ndarray:
