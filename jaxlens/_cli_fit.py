@@ -201,7 +201,7 @@ def run(args):
         psf = 1.0
         free.append("psf_sigma")
     elif args.psf is not None:
-        from ._fit.pixels import read_observation
+        from ._fit.observation import read_observation
 
         psf = read_observation(args.psf)
     init = {}

@@ -100,10 +100,10 @@ def gaussian_otf(shape: tuple[int, int], sigma_px: ArrayLike) -> Float[Array, "H
         sigma = eqx.error_if(
             sigma, ~(jnp.isfinite(sigma) & (sigma >= 0)), "sigma_px must be finite and >= 0"
         )
-    return _gaussian_otf((h, w), sigma)
+    return gaussian_otf_unchecked((h, w), sigma)
 
 
-def _gaussian_otf(shape: tuple[int, int], sigma) -> Array:
+def gaussian_otf_unchecked(shape: tuple[int, int], sigma) -> Array:
     """`gaussian_otf` of a width `sigma` (a float array, pixels) known to be valid: no
     checks (a traced one's is a host callback)."""
     h, w = shape

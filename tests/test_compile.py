@@ -243,8 +243,8 @@ with warnings.catch_warnings(record=True) as seen:
     img = jl.render(jl.Camera(20.0, math.radians(60.0), 96, 72, supersample=3), sky)
     noisy = img[..., 0] + 0.01 * np.random.default_rng(1).standard_normal(img.shape[:2])
     fit = jl.fit_ring(np.clip(noisy, 0.0, 1.0), star_sigma=math.radians(1.5))
-from jaxlens._fit import general, starts
-ran = [p._scheduled for p in (general._solve, general._renoised, starts._candidate_losses)]
+from jaxlens._fit import objective, starts
+ran = [p._scheduled for p in (objective.solve, objective.renoised, starts._candidate_losses)]
 assert all(ran), ran
 print(len([w for w in seen if "xla_jaxlens_test_unknown" in str(w.message)]),
       float(np.max(np.abs(exact.phi - table.phi))), float(img.sum()), fit.distance)

@@ -29,15 +29,18 @@ from .fit_result import Fit as Fit
 from .fits import FitsImage as FitsImage, read_fits as read_fits
 from .general import DEFAULT_FREE as DEFAULT_FREE, fit as fit
 from .model import ring_image as ring_image
-from .noise import clipped_mean as clipped_mean
-from .params import PARAMETERS as PARAMETERS
-from .pixels import read_observation as read_observation
-from .psf import (
-    convolve_psf as convolve_psf,
-    gaussian_otf as gaussian_otf,
-    image_otf as image_otf,
-    psf_margin as psf_margin,
+from .noise import (
+    AbstractNoise as AbstractNoise,
+    Gaussian as Gaussian,
+    Poisson as Poisson,
+    clipped_mean as clipped_mean,
 )
+from .observation import (
+    Observation as Observation,
+    observe as observe,
+    read_observation as read_observation,
+)
+from .params import PARAMETERS as PARAMETERS
 from .ring import fit_ring as fit_ring
 from .table import einstein_ring_angle as einstein_ring_angle, escape_table as escape_table
 from .units import (

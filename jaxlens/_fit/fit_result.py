@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from .noise import GOODNESS_SIGMAS
 from .params import is_angle, parameter
 from .units import mass_from_distance, schwarzschild_radius_m
 
@@ -50,6 +51,11 @@ class Fit:
       for an array. `transfer_reason`: why that decoding ("tagged sRGB", "untagged:
       both decodings fitted, linear passed the residual test", ...; "" when none was
       given).
+    - `goodness`: how far the residuals exceed the noise model, in standard deviations
+      of their sum of squares (its own scatter and the estimated noise level's
+      uncertainty: `AbstractNoise.excess`); above 5 the model does not describe the
+      image and `message` says so with the likely cause; NaN where the image shows no
+      pixel noise to judge by. `fits_noise` (property): at most 5.
     - `residual_noise` (property): the residuals' standard deviation per compared pixel
       (data units), $\\sqrt{\\chi^2/\\mathrm{dof}}$ times `noise_sigma`; NaN under Poisson
       noise, whose level varies with the model.
@@ -85,6 +91,13 @@ class Fit:
     seconds: float
     transfer: str | None = None
     transfer_reason: str = ""
+    goodness: float = math.nan
+
+    @property
+    def fits_noise(self) -> bool:
+        """Whether the residuals are within the noise model's scatter: `goodness` at
+        most `noise.GOODNESS_SIGMAS` (False where no noise was found to judge by)."""
+        return bool(self.goodness <= GOODNESS_SIGMAS)
 
     def __getattr__(self, name):
         # fit.distance, fit.distance_err, fit.fov_deg, ...
@@ -141,7 +154,7 @@ class Fit:
             n_pixels=self.n_pixels, block=self.block, supersample=self.supersample,
             result=self.result_name, num_steps=self.num_steps,
             variance_inflation=self.variance_inflation, seconds=self.seconds,
-            transfer=self.transfer, transfer_reason=self.transfer_reason,
+            transfer=self.transfer, transfer_reason=self.transfer_reason, goodness=self.goodness,
         )  # fmt: skip
         return out
 

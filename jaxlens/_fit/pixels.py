@@ -1,13 +1,10 @@
-"""The observed pixels (host-side numpy): reading an observation, checking and binning
-it, and choosing the pixels a fit compares."""
+"""The observed pixels (host-side numpy): the pixel grid, checking and binning an
+image, and choosing the pixels a fit compares."""
 
 import math
-from pathlib import Path
 
 import equinox as eqx
 import numpy as np
-
-from .._io import read_pixels, srgb_decode, transfer_of
 
 # Pixels a strip of the image holds when it is binned strip by strip (the temporaries
 # of one strip, not of the whole image).
@@ -46,36 +43,6 @@ def pixel_edges(width: int, height: int, block: int, dtype):
     return np.broadcast_to(x0[None, :], (hb, wb)), np.broadcast_to(y0[:, None], (hb, wb))
 
 
-def read_observation(path) -> np.ndarray:
-    """Read an image file as the fit reads it: linear intensity, the colour channels
-    averaged (an alpha channel, as OpenImageIO identifies it, is left out).
-
-    The values are read as the file says they are stored (`transfer_of`, the rule of
-    `read_image`): 8- and 16-bit files tagged sRGB, or untagged (PNG's and JPEG's
-    default, and what `write_image` and `jaxlens render` write), are decoded from the
-    sRGB transfer to linear; float files (EXR, FITS, float TIFF) and integer files
-    tagged linear (a PNG with gAMA 1.0: OpenImageIO's `oiio:ColorSpace` "linear") are
-    taken as stored. Integer formats are normalised to [0, 1] first.
-
-    **Returns:** float64 `(H, W)`; raises `ValueError` naming the file when it is
-    missing, empty, not an image or unreadable.
-    """
-    return read_observation_transfer(path)[0]
-
-
-def read_observation_transfer(path) -> tuple[np.ndarray, str]:
-    """`read_observation(path)` and the transfer it assumed (`"srgb"` decoded, or
-    `"linear"`)."""
-    data, info = read_pixels(path)
-    data, alpha = np.asarray(data, np.float64), info["alpha"]
-    colour = [i for i in range(data.shape[-1]) if i != alpha] or [0]
-    transfer = transfer_of(info)
-    grey = data[..., colour]
-    if transfer == "srgb":
-        grey = srgb_decode(grey, np.float64)
-    return grey.mean(axis=-1), transfer
-
-
 def real_image(image, name: str = "image") -> np.ndarray:
     """`image` as a float64 NumPy array, after checking that it holds real numbers:
     a complex, boolean, string or object array is a `TypeError` naming its dtype
@@ -85,29 +52,6 @@ def real_image(image, name: str = "image") -> np.ndarray:
         raise TypeError(f"{name} of dtype {a.dtype} is not valid: expected real numbers "
                         "(an integer or floating-point array)")  # fmt: skip
     return np.asarray(a, np.float64)
-
-
-def _as_gray(image) -> tuple[np.ndarray, str | None]:
-    """`(img, transfer)`: a ring fit's image as float64 `(H, W)`, checked, and how a
-    file's values were read (`read_observation_transfer`; `None` for an array)."""
-    transfer = None
-    if isinstance(image, (str, Path)):
-        image, transfer = read_observation_transfer(image)
-    img = real_image(image)
-    if img.ndim == 3:
-        img = img.mean(axis=-1)
-    if img.ndim != 2:
-        raise ValueError(f"image of shape {np.shape(image)} is not (H, W) or (H, W, C)")
-    if min(img.shape) < 8:
-        raise ValueError(f"image of {img.shape[1]}x{img.shape[0]} pixels is too small to fit")
-    if not np.all(np.isfinite(img)):
-        raise ValueError("image has NaN or infinite pixels")
-    span = float(img.max() - img.min())
-    if span <= 1e-12 * max(1.0, abs(float(img.max()))):
-        raise ValueError(
-            f"image is blank (every pixel is {float(img.flat[0]):.6g}): no ring to fit"
-        )
-    return img, transfer
 
 
 def bin_means(img, block):

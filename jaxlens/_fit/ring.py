@@ -3,16 +3,16 @@
 import dataclasses
 import math
 
+import numpy as np
+
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
 from .._util import host_driver
 from .fit_result import Fit
 from .general import fit
-from .pixels import _as_gray
+from .observation import observe
 from .starts import radial_profile
-
-TRANSFERS = ("auto", "srgb", "linear")
 
 
 def fit_ring(
@@ -20,6 +20,10 @@ def fit_ring(
     *,
     transfer: str = "auto",
     star_sigma: float | None = None,
+    psf=None,
+    noise="gaussian",
+    gain: float | None = None,
+    mask=None,
     init: dict | None = None,
     supersample: int | None = None,
     block: int | None = None,
@@ -45,15 +49,18 @@ def fit_ring(
     blocks where the image is flat.
 
     **Arguments:**
-    - `image`: array `(H, W)` or `(H, W, C)` of linear intensity (channels averaged),
-      or a path, read by `fit` (FITS through astropy; other formats as linear
-      intensity, alpha left out, decoded as `transfer` says).
+    - `image`: an `Observation` (`observe`), array `(H, W)` or `(H, W, C)` of linear
+      intensity (channels averaged; NaN: not valid), or a path (FITS through astropy;
+      other formats as linear intensity, alpha left out, decoded as `transfer` says).
     - `transfer`: how an 8/16-bit file's values are decoded: `"srgb"` (from sRGB to
       linear), `"linear"` (as stored, normalised to [0, 1]), or `"auto"` (the file's
       tag; an untagged file is fitted under both and the decoding whose residuals
       pass the noise test kept). Float files, FITS and arrays are linear.
       `Fit.transfer` and `Fit.transfer_reason` say which and why.
     - `star_sigma`: the star's Gaussian width (radians) when known; fitted otherwise.
+    - `psf`, `noise`, `gain`, `mask`: the point-spread function (a `GaussianPSF`, an
+      `ImagePSF`, a Gaussian width in pixels or a PSF image), the noise model and the
+      bad pixels, as `observe` takes them.
     - `init`: optional starting values, a dict with `distance` (R_S) and `fov`
       (radians) or `fov_deg`, optionally `sigma` (radians).
     - `supersample`: $k$ ($k \\times k$ nodes a pixel); default from the ring width.
@@ -70,17 +77,12 @@ def fit_ring(
     """
     host_driver("fit_ring", "differentiate the model (jaxlens.ring_image) instead", image,
                 star_sigma, init)  # fmt: skip
-    if transfer not in TRANSFERS:
-        raise ValueError(f"transfer={transfer!r} is not valid: expected one of "
-                         + ", ".join(map(repr, TRANSFERS)))  # fmt: skip
     if star_sigma is not None and not (0 < star_sigma < math.pi):
         raise ValueError(f"star_sigma={star_sigma!r} must be in (0, pi) radians")
-    # A ring's own checks, before any compiling: a finite, non-blank image of 8 pixels a
-    # side at least whose radial profile about the centre shows a ring (`fit` also takes
-    # arcs). The values are `fit`'s to read and decode; these checks need only their
-    # shape, which a monotonic decoding keeps.
-    img, _ = _as_gray(image)
-    prof = radial_profile(img)
+    obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain)
+    # A ring's own check, before any compiling: the radial profile about the centre
+    # shows a ring (`fit` also takes arcs).
+    prof = radial_profile(np.where(obs.valid, obs.data, np.nanmedian(obs.data[obs.valid])))
     if not prof.peak > 8.0 * prof.peak_noise:
         raise ValueError(
             f"no ring found: the radial profile about the image centre peaks "
@@ -92,11 +94,8 @@ def fit_ring(
     scene = Scene(Camera(20.0, 1.0, 8, 8), sky)
     free = ("distance", "fov") + (("sigma",) if fit_sigma else ())
     free += ("brightness", "floor", "ring_flux")
-    # "auto" is `fit`'s default (and it has no `transfer` argument before it decodes
-    # untagged files both ways): given only when chosen.
-    chosen = {} if transfer == "auto" else {"transfer": transfer}
-    f = fit(scene, image, free=free, init=init, supersample=supersample, block=block,
-            max_pixels=max_pixels, knots=knots, rtol=rtol, atol=atol, max_steps=max_steps,
-            **chosen)  # fmt: skip
+    f = fit(scene, obs, free=free, init=init, supersample=supersample, block=block,
+            max_pixels=max_pixels, knots=knots, rtol=rtol, atol=atol,
+            max_steps=max_steps)  # fmt: skip
     # A ring fit that did not converge fixes neither D nor FOV.
     return dataclasses.replace(f, degenerate=f.degenerate or not f.converged)

@@ -1,0 +1,388 @@
+"""A fit's first stages after reading the image: what the image shows (`look`: its
+radial profile, arcs, shadow edge), the compared bins and the model's arguments
+(`build`), and the starting values (`starting_values`, then `refine` by scans of the
+compiled loss)."""
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from .._camera import Camera
+from .._exact import _shadow_angle
+from .._psf import GaussianPSF
+from .._scene import Scene
+from .._util import to_device
+from . import starts
+from .arcs import find_arcs, source_offset_from_arcs
+from .model import samples_for
+from .objective import Data, Problem, loss, select
+from .observation import Observation
+from .params import apply, floor_of, in_scene, parameter, values_of
+from .pixels import grid_sets, pixel_centres, pixel_edges, pixel_sets
+
+_GEOMETRY = frozenset({"distance", "fov", "source_lon", "source_lat"})
+# A ring this few pixels in radius cannot hold the features that separate D from the
+# field of view (the shadow's edge, the ring's width, the relativistic rings).
+SMALLEST_RING_PX = 6.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """The caller's settings of a fit (`fit`'s arguments of the same names; `init` in
+    physical units, `fov_deg` already converted)."""
+
+    free: tuple
+    init: dict
+    block: int | None
+    max_pixels: int | None
+    supersample: int | None
+    knots: int
+    rtol: float
+    atol: float
+    max_steps: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Look:
+    """What the image shows, before any model: `grey` (the image, invalid pixels at the
+    median), `prof` (its radial profile about the centre, `starts.profile`), `arcs`
+    (`find_arcs`), `found` (arcs stand out), `arc_like` (arcs, not a ring: offset by
+    more than a pixel and half their width), `masked` (NaN where not valid)."""
+
+    grey: np.ndarray
+    masked: np.ndarray
+    prof: object
+    arcs: object
+    found: bool
+    arc_like: bool
+
+    @property
+    def edge_seen(self) -> float:
+        """The shadow's edge radius (pixels) the arcs' model found, else NaN."""
+        return self.arcs.shadow_radius if self.found else math.nan
+
+    @property
+    def shadow_seen(self) -> bool:
+        return math.isfinite(self.prof.shadow_radius)
+
+
+def look(obs: Observation) -> Look:
+    """The image's radial profile and arcs; a `ValueError` when neither a ring nor arcs
+    stand out of the noise, or the ring is under `SMALLEST_RING_PX` in radius."""
+    grey = np.where(obs.valid, obs.data, np.nanmedian(obs.data[obs.valid]))
+    prof = starts.radial_profile(grey)
+    arcs = find_arcs(obs.data)
+    found = arcs.score > 10.0
+    arc_like = found and arcs.offset > max(1.0, 0.5 * arcs.ring_width)
+    if arc_like:
+        # Arcs, not a ring: the radial profile about the image centre mixes the two
+        # arcs' radii, so the ring start takes the arcs' Einstein radius and width.
+        r, wr = arcs.ring_radius, arcs.ring_width
+        prof = eqx.tree_at(lambda q: (q.ring_radius, q.ring_width, q.inner_half, q.outer_half),
+                           prof, (r, wr, r - 1.1774 * wr, r + 1.1774 * wr))  # fmt: skip
+    if not prof.peak > 8.0 * prof.peak_noise and arcs.score <= 10.0:
+        raise ValueError(
+            f"no ring or arcs found: the radial profile about the image centre peaks "
+            f"{prof.peak:.3g} above its floor, within 8 times its noise "
+            f"({prof.peak_noise:.3g}), and no arcs stand out of the noise"
+        )
+    if prof.ring_radius < SMALLEST_RING_PX:
+        h, w = obs.shape
+        raise ValueError(f"the ring is {prof.ring_radius:.2g} px in radius on a {w} x {h} image: "
+                         "too few pixels to separate the distance from the field of view (the "
+                         "shadow's edge and the ring's width need more)")  # fmt: skip
+    return Look(grey, obs.data, prof, arcs, found, arc_like)
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """The compared bins (`pix`, a `pixels` set), the Gauss-Legendre order `k`, the
+    model's scene, the residuals' arguments (`data`, an `objective.Data`), the problem
+    and the free parameters' internal starting values `theta0`."""
+
+    pix: object
+    k: int
+    scene: Scene
+    data: Data
+    prob: Problem
+    theta0: np.ndarray
+
+
+def psf_width(psf) -> float:
+    """The Gaussian width (pixels) of a PSF model (`AbstractPSF.width_px`); 0 without
+    one."""
+    return 0.0 if psf is None else float(psf.width_px)
+
+
+def gaussian_psf(psf) -> bool:
+    """Whether the PSF is a Gaussian, whose width the model takes as a parameter."""
+    return isinstance(psf, GaussianPSF)
+
+
+def _unblurred_width(width_px: float, psf_px: float) -> float:
+    """A ring's radial Gaussian width before a PSF of Gaussian width `psf_px` blurred
+    it to `width_px` (pixels): the widths in quadrature, at least a quarter of
+    `width_px` (where the PSF makes nearly all of it, the difference is noise)."""
+    return math.sqrt(max(width_px**2 - psf_px**2, (0.25 * width_px) ** 2))
+
+
+def _psf_grid(obs: Observation, values, b: int):
+    """With a PSF: the bins' grid on a margin the PSF reaches (its side in bins a
+    multiple of 4, so PSFs of similar widths share programs) and the OTF of a PSF
+    image: `(grid, otf, pad)`."""
+    h, w = obs.shape
+    if gaussian_psf(obs.psf):
+        pad = -(-math.ceil(4.0 * max(values["psf_sigma"], 0.5) * 1.5) // b)
+    else:
+        pad = -(-(max(np.shape(obs.psf.image)) // 2 + 1) // b)
+    pad = -(-pad // 4) * 4
+    x0, y0 = (np.asarray(v) for v in pixel_edges(w, h, b, np.float64))
+    xs = x0[0, 0] + b * np.arange(-pad, x0.shape[1] + pad)
+    ys = y0[0, 0] - b * np.arange(-pad, y0.shape[0] + pad)
+    grid = tuple(to_device(v) for v in np.meshgrid(xs, ys))
+    otf = None if gaussian_psf(obs.psf) else obs.psf.otf(grid[0].shape)
+    return grid, otf, pad
+
+
+def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, values: dict,
+          f_px: float, centre) -> Setup:  # fmt: skip
+    """The compared bins and the model's arguments for the starting `values` (every
+    parameter's, physical), a focal length `f_px` (pixels) and the hole's image at
+    `centre` (pixels from the image centre, y up), under the estimated `noise`."""
+    h, w = obs.shape
+    prof = seen.prof
+    if obs.psf is None:
+        # The shadow's edge where the image shows it (its radial profile's, which
+        # `pixel_sets` takes itself, else the arcs' model's), else where the starting
+        # distance puts it.
+        if seen.shadow_seen:
+            rho_sh = math.nan
+        elif math.isfinite(seen.edge_seen):
+            rho_sh = seen.edge_seen
+        else:
+            rho_sh = f_px * math.tan(_shadow_angle(max(values["distance"], 1.6), np))
+        level = float(noise.sigma) if hasattr(noise, "sigma") else prof.noise
+        pix = pixel_sets(seen.grey, prof, rho_sh, opts.max_pixels or 40_000, opts.block,
+                         valid=obs.valid, centre=centre,
+                         structure=prof.floor + 3.0 * level)  # fmt: skip
+    else:
+        b = opts.block
+        if b is None:
+            b = 1
+            while (h // b) * (w // b) > (opts.max_pixels or 65_536):
+                b += 1
+        pix = grid_sets(seen.grey, obs.valid, int(b))
+    b = pix.block
+    # The rendered ring's width: the image's, less the PSF's in quadrature (a narrow
+    # ring under a wide PSF needs a higher order than its image shows). Under a PSF
+    # order 2 is not used: the measured width's error grows as the PSF's share does.
+    k = (int(opts.supersample) if opts.supersample is not None
+         else samples_for(_unblurred_width(prof.ring_width, psf_width(obs.psf)), b,
+                          2 if obs.psf is None else 3))  # fmt: skip
+    cam0 = scene.camera
+    yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
+    cam = Camera(values["distance"], values["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
+                 supersample=k, sampling="gauss", dtype=np.float64)  # fmt: skip
+    sky = jax.tree.map(lambda a: to_device(a, np.float64), scene.sky)
+    # Values given for parameters held fixed are the model's.
+    held = {n: v for n, v in opts.init.items() if n not in opts.free}
+    model_scene = apply(Scene(cam, sky), {n: v for n, v in held.items() if in_scene(n)})
+    pad, otf = 0, None
+    if obs.psf is None:
+        grid = tuple(to_device(np.concatenate(v)) for v in zip(pix.fine, pix.coarse_edges))
+        grid += (to_device(pix.side, np.float64),)
+    else:
+        grid, otf, pad = _psf_grid(obs, values, b)
+    # Every parameter of the model: the scene's own, then the PSF's width and the
+    # rings' flux factor.
+    given = values_of(model_scene)
+    names = tuple(given) + ("psf_sigma",) * gaussian_psf(obs.psf) + ("ring_flux",)
+    for n in opts.free:
+        if n not in names:  # a floor the sky does not have: say so
+            floor_of(model_scene.sky)
+    given |= {n: values[n] for n in ("psf_sigma", "ring_flux")}
+    sel = select(names, opts.free, {n: values[n] if n in opts.free else given[n] for n in names})
+    turned = (
+        bool({"yaw", "pitch"} & set(opts.free))
+        or bool(np.any(roll))
+        or any(given.get(n, 0.0) != 0.0 for n in ("yaw", "pitch"))
+    )
+    psf_kind = None if obs.psf is None else ("gaussian" if gaussian_psf(obs.psf) else "image")
+    prob = Problem(names, b, k, pad, psf_kind, int(opts.knots), centred=not turned)
+    data = Data(model_scene, grid, otf, to_device(pix.data), to_device(pix.weight),
+                jax.tree.map(to_device, noise), sel)  # fmt: skip
+    theta0 = np.asarray([parameter(n).transform.inverse(values[n]) for n in opts.free])
+    return Setup(pix, k, model_scene, data, prob, theta0)
+
+
+def focal(fov: float, width: int) -> float:
+    """The focal length (pixels) of a pinhole camera `width` pixels wide."""
+    return 0.5 * width / math.tan(0.5 * fov)
+
+
+def scans(seen: Look, opts: Options) -> tuple[bool, bool]:
+    """Whether the start scans the distance along the ring relation (arcs with no
+    shadow in view: nothing in a ring's profile fixes D; a centred ring's candidates
+    fit the arcs' azimuthal mean, D 3300 for the benchmark's D 150 arcs) and the
+    source's offset (free, not given, and the image shows arcs or nothing the arcs'
+    model took for a ring: a ring offset by less than a pixel or half its width starts
+    behind the hole, where the scan put it on 13 of the fit benchmark's 14 rings)."""
+    free, init = set(opts.free), set(opts.init)
+    scan_d = (seen.arc_like and not math.isfinite(seen.arcs.shadow_radius)
+              and _GEOMETRY <= free and not _GEOMETRY & init)  # fmt: skip
+    source = {"source_lon", "source_lat"}
+    scan_source = source <= free and not source & init and (seen.arc_like or not seen.found)
+    return scan_d, scan_source
+
+
+def starting_values(seen: Look, obs: Observation, scene: Scene, opts: Options, scale: float,
+                    scan_d: bool) -> dict:  # fmt: skip
+    """Every parameter's starting value (physical): the scene's, what `init` gives, and
+    where it does not, the ring start (`starts.ring_start`: the radial profile through
+    the exact ring relation) or, for arcs, the arcs' radii and amplitude."""
+    prof, arcs, free, init = seen.prof, seen.arcs, opts.free, opts.init
+    w = obs.shape[1]
+    values = starting_values_given(scene, obs, Options(**{**vars(opts), "init": {}}))
+    ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
+    if scan_d:
+        values |= init | _arcs_camera(arcs, w, init.get("sigma", values["sigma"]))
+    elif ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
+        sig = None if "sigma" in free else init.get("sigma", values["sigma"])
+        ring_init = None
+        if "distance" in init and "fov" in init:
+            ring_init = {n: init[n] for n in ("distance", "fov", "sigma") if n in init}
+        elif seen.arc_like and math.isfinite(arcs.shadow_radius):
+            # Arcs around a visible shadow: the ratio of their Einstein radius to the
+            # shadow's fixes D (a centred ring's candidates can fit arcs at the wrong
+            # distance: D 3.0, FOV 143 deg for D 20, FOV 60 deg).
+            ring_init = starts.distance_from_radii(arcs.ring_radius, arcs.shadow_radius, w)
+        d_s, fov_s, sig_s, a_s, fl_s, *_ = starts.ring_start(seen.grey, prof, sig, ring_init,
+                                                             scale)  # fmt: skip
+        guess = {"distance": d_s, "fov": fov_s, "sigma": sig_s, "brightness": a_s, "floor": fl_s}
+        # The ring start refines what `init` gives of D, FOV and sigma (its own
+        # candidates), so those refined values stand; other given values win.
+        refined = set(ring_init or ())
+        values |= init | {n: v for n, v in guess.items()
+                          if n in free and (n not in init or n in refined)}  # fmt: skip
+        if ring_init is not None and "distance" not in init:
+            # From the arcs' radii: the ring start's centred-ring model, which does not
+            # describe arcs, moved the FOV 7 % off (74.6 deg for 70) on the benchmark's
+            # first arcs image, and the fit then settled 15 % off in D.
+            values |= ring_init
+    else:
+        values |= init
+    if seen.arc_like:
+        # The ring start's brightness and floor are the ring's azimuthal mean.
+        values |= {n: v for n, v in (("brightness", arcs.amplitude), ("floor", arcs.floor))
+                   if n in free and n not in init}  # fmt: skip
+    return values
+
+
+def starting_values_given(scene: Scene, obs: Observation, opts: Options) -> dict:
+    """Every parameter's value from the scene, the PSF's width (1 px without one), the
+    rings' flux factor 1, and what `init` gives."""
+    width = float(obs.psf.sigma_px) if gaussian_psf(obs.psf) else 1.0
+    extra = {"psf_sigma": width, "ring_flux": 1.0}
+    return values_of(scene) | extra | opts.init
+
+
+def _arcs_candidates(arcs, width: int, blur_px: float = 0.0):
+    """Cameras along the exact ring relation that put the Einstein ring at the arcs'
+    radius: `(distance, fov, focal, sigma)` arrays (R_S, radians, pixels, radians),
+    sigma the star width the arcs' radial width implies (radial magnification 1/2 at
+    the Einstein ring, the blur `blur_px` and the pixel removed in quadrature)."""
+    d, a_e, _, _ = starts._ring_table()
+    f = arcs.ring_radius / np.tan(a_e)
+    fov = 2.0 * np.arctan(0.5 * width / f)
+    ok = (fov > math.radians(0.05)) & (fov < math.radians(179.0))
+    intrinsic = math.sqrt(max(arcs.ring_width**2 - blur_px**2 - 1.0 / 12.0, 0.25))
+    return d[ok], fov[ok], f[ok], 2.0 * intrinsic / f[ok]
+
+
+def _arcs_camera(arcs, width: int, sigma: float):
+    """A first `{"distance", "fov"}` for arcs with no shadow in view: the camera whose
+    ring relation and radial magnification give arcs of the measured radius and width
+    for a star of width `sigma` (radians); refined by `refine`'s distance scan."""
+    d, fov, _, sig = _arcs_candidates(arcs, width)
+    i = int(np.argmin(np.abs(np.log(sig / sigma))))
+    return {"distance": float(d[i]), "fov": float(fov[i])}
+
+
+def _best(theta0, cands, s: Setup):
+    """The candidate (internal parameters, one a row) of lowest loss, else `theta0`."""
+    losses = [float(loss(to_device(c), s.data, s.prob)) for c in cands]
+    losses = np.where(np.isfinite(losses), losses, np.inf)
+    return cands[int(np.argmin(losses))] if np.isfinite(losses).any() else theta0
+
+
+def _distance_scan(theta0, seen: Look, obs: Observation, s: Setup, opts: Options):
+    """`theta0` with D, FOV, the source (and sigma, when free) set to the candidate
+    along the ring relation whose full-model loss is lowest: the source offset at each
+    D from the arcs' radii, along their azimuth."""
+    free, arcs = opts.free, seen.arcs
+    blur = float(obs.psf.sigma_px) if gaussian_psf(obs.psf) else 0.0
+    d, fov, f, sig = _arcs_candidates(arcs, obs.shape[1], blur)
+    beta = np.asarray(source_offset_from_arcs(arcs, d, f), float)
+    values = {"distance": d, "fov": fov, "source_lon": beta * math.cos(arcs.psi),
+              "source_lat": beta * math.sin(arcs.psi), "sigma": sig}  # fmt: skip
+    cands = []
+    for j in np.flatnonzero(np.isfinite(beta)):
+        cand = np.array(theta0, float)
+        for n, v in values.items():
+            if n in free:
+                cand[free.index(n)] = parameter(n).transform.inverse(float(v[j]))
+        cands.append(cand)
+    return _best(theta0, np.asarray(cands), s) if cands else theta0
+
+
+def _source_azimuth(seen: Look, obs: Observation, floor: float) -> float:
+    """Azimuth (radians, image plane, 0 = +x toward +y) of the brighter arc: the first
+    moment of the light above the floor in an annulus about the ring radius."""
+    h, w = obs.shape
+    x, y = pixel_centres(h, w)
+    x, y = x[None, :], y[:, None]
+    rho = np.hypot(x, y)
+    ring = seen.prof.ring_radius
+    band = obs.valid & (np.abs(rho - ring) < max(3.0, 0.3 * ring))
+    wgt = np.clip(seen.grey - floor, 0.0, None) * band
+    if wgt.sum() <= 0:
+        return 0.0
+    rho = np.maximum(rho, 1e-9)
+    return math.atan2((wgt * y / rho).sum(), (wgt * x / rho).sum())
+
+
+def refine(theta0, seen: Look, obs: Observation, s: Setup, opts: Options, values: dict,
+           scan_d: bool, scan_source: bool):  # fmt: skip
+    """The internal starting values after the scans of the compiled loss: the hole's
+    image (yaw, pitch) from the arcs, the distance along the ring relation (`scan_d`)
+    and the source's offset along the arcs' azimuth (`scan_source`)."""
+    free, arcs = opts.free, seen.arcs
+    theta0 = np.array(theta0, float)
+    f_px = focal(values["fov"], obs.shape[1])
+    for name, c in (("yaw", arcs.x_c), ("pitch", arcs.y_c)):
+        if name in free and name not in opts.init and seen.found:
+            theta0[free.index(name)] = math.atan(-c / f_px)  # the view turned away
+    if scan_d:
+        theta0 = _distance_scan(theta0, seen, obs, s, opts)
+        scanned = ("distance", "fov", "sigma")
+        values = values | {n: float(parameter(n).transform.forward(theta0[i]))
+                           for i, n in enumerate(free) if n in scanned}  # fmt: skip
+        f_px = focal(values["fov"], obs.shape[1])
+    if scan_source:
+        if seen.found:
+            psi = arcs.psi
+            beta = float(source_offset_from_arcs(arcs, values["distance"], f_px))
+        else:
+            psi = _source_azimuth(seen, obs, values.get("floor", 0.0))
+            beta = math.nan
+        offsets = [0.0] + list(np.geomspace(0.05, 6.0, 8) * math.pi / 180.0)
+        if math.isfinite(beta) and beta > 0:
+            offsets += list(beta * np.asarray([0.6, 0.8, 1.0, 1.25, 1.6]))
+        cands = np.repeat(theta0[None], len(offsets), axis=0)
+        cands[:, free.index("source_lon")] = np.asarray(offsets) * math.cos(psi)
+        cands[:, free.index("source_lat")] = np.asarray(offsets) * math.sin(psi)
+        theta0 = _best(theta0, cands, s)
+    return theta0
