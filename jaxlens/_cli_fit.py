@@ -216,8 +216,6 @@ def run(args):
     gain = None
     if args.gain is not None:
         gain = _positive("--gain", "counts a unit of pixel value")(args.gain)
-    # "auto" is the fit's default: given only when chosen.
-    transfer = {} if args.transfer == "auto" else {"transfer": args.transfer}
     model = Scene(Camera(20.0, 1.0, 8, 8), GaussianStar(0.01) + Uniform(0.0))
     images = args.images
     several = len(images) > 1
@@ -231,7 +229,7 @@ def run(args):
         cli.status(f"fitting {image}{which} (compiling on first use)")
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
-                            mask=args.mask, init=init or None, **transfer)  # fmt: skip
+                            mask=args.mask, init=init or None, transfer=args.transfer)  # fmt: skip
         except (ValueError, OSError) as e:
             if not several:
                 raise

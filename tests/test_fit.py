@@ -113,7 +113,7 @@ def test_stored_ring_table_is_the_computed_one():
     # the values by far more.
     from jaxlens._fit import starts
 
-    stored, computed = starts._ring_table(), starts.compute_ring_table()
+    stored, computed = starts.ring_table(), starts.compute_ring_table()
     for s, c in zip(stored, computed, strict=True):
         np.testing.assert_allclose(s, c, rtol=2e-11, atol=0.0)
 
@@ -145,11 +145,12 @@ def test_start_search_model_is_the_area_exact_model(d, focal, sigma):
     # and the exact shadow shares.
     from jaxlens._area import rect_in_disc
     from jaxlens._fit import starts
-    from jaxlens._fit.model import _pixel_basis, _pixel_edges
+    from jaxlens._fit.model import _pixel_basis
+    from jaxlens._fit.pixels import pixel_edges
     from jaxlens._fit.table import escape_table
 
     with jax.enable_x64(True):
-        x0, y0 = _pixel_edges(400, 300, 8, np.float64)
+        x0, y0 = pixel_edges(400, 300, 8, np.float64)
         table = escape_table(d, knots=1024)
         radial, group, count = starts._radial_weights(400, 300, 8, 2.7)
         assert len(count) == 475 and count.sum() == 1850  # one bin of each mirrored set
@@ -175,7 +176,7 @@ def test_gauss_legendre_order_meets_its_bound():
     # of that width over a pixel within 4e-5 of its peak (against the exact erf
     # average, every offset of the ring from the pixel); the next lower order does not.
     from jaxlens._area import rule
-    from jaxlens._fit.model import _samples_for
+    from jaxlens._fit.model import samples_for
 
     erf = np.vectorize(math.erf)
 
@@ -189,12 +190,12 @@ def test_gauss_legendre_order_meets_its_bound():
 
     orders = [2, 3, 4, 6, 8]
     for width in (2.1, 0.75, 0.5, 0.25):
-        k = _samples_for(width, 1)
+        k = samples_for(width, 1)
         assert worst(k, width) < 4e-5
         if k > 2:
             assert worst(orders[orders.index(k) - 1], width) > 4e-5
-        assert _samples_for(0.99 * width, 1) > k  # the smallest order that meets it
-    assert _samples_for(3.0, 1, lowest=3) == 3 and _samples_for(3.0, 2) == 3  # side 2 px
+        assert samples_for(0.99 * width, 1) > k  # the smallest order that meets it
+    assert samples_for(3.0, 1, lowest=3) == 3 and samples_for(3.0, 2) == 3  # side 2 px
 
 
 def test_einstein_ring_angle_gradient():
@@ -713,15 +714,18 @@ def test_cli(tmp_path, capsys, monkeypatch):
     assert "1 of 3 images could not be fitted" in captured.err
 
     # The text report, with the mass from a known distance (6 significant digits).
-    assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--distance-m", "6e5"]) == 0
+    argv = ["fit", str(path), "--star-sigma-deg", "1.5", "--distance-m", "6e5", "--transfer",
+            "linear"]  # fmt: skip
+    assert cli.main(argv) == 0
     text = capsys.readouterr().out
     assert "source_lon" in text
     d = float(re.search(r"^distance\s+= (\S+) \+- \S+ R_S", text, re.M).group(1))
     m = float(re.search(r"^mass\s+= (\S+) \+- \S+ M_sun \(distance 600000 m\)", text,
                         re.M).group(1))  # fmt: skip
     assert m == pytest.approx(6e5 / (d * 2953.25), rel=2e-5)
-    # The text report is Fit.summary()'s: the file's decoding on a line of its own.
-    assert re.search(r"^transfer\s+= linear \(as stored", text, re.M)
+    # The text report is Fit.summary()'s: the file's decoding on a line of its own, here
+    # as --transfer chose it.
+    assert re.search(r"^transfer\s+= linear \(as stored.*transfer='linear' given", text, re.M)
 
     # --transfer takes the three decodings only (argparse: its usage line, exit 2).
     with pytest.raises(SystemExit) as e:

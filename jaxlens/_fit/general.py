@@ -162,7 +162,7 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
     free, w = opts.free, obs.shape[1]
     with jax.enable_x64(True):
         seen = st.look(obs)
-        noise = obs.noise.estimated(obs.data, obs.valid, profile=seen.prof)
+        noise = obs.noise.estimated(obs.data, obs.valid, profile=seen.prof, level=seen.level)
         # An estimated noise must be the image's own: a noiseless (rendered, averaged)
         # image gives errors that measure the misfit, not a measurement's scatter.
         noise_seen = obs.noise.level_given or noise.name == "poisson"
@@ -174,7 +174,7 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
         if seen.found and {"yaw", "pitch"} & set(free):
             # A hole off the image centre: its image as a camera turned toward it sees
             # the arcs (the oblique projection moves the ring's centre).
-            arcs = find_arcs(obs.data, focal=st.focal(values["fov"], w))
+            arcs = find_arcs(obs.data, noise=seen.level[0], focal=st.focal(values["fov"], w))
             seen = dataclasses.replace(seen, arcs=arcs, found=arcs.score > 10.0)
         centre = (seen.arcs.x_c, seen.arcs.y_c) if seen.found else (0.0, 0.0)
         s = st.build(obs, seen, noise, scene, opts, values, st.focal(values["fov"], w), centre)

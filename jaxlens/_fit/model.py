@@ -107,7 +107,7 @@ def ring_image(
     - `sigma`: the star's Gaussian width in angular distance (radians).
     - `brightness`: peak radiance $A$ of the star; `floor`: the uniform sky level.
     - `ring_flux`: factor on the flux of the relativistic rings (images of order 1 and
-      2); 1 is the exact area average, as `RingFit.ring_flux` reports it.
+      2); 1 is the exact area average, as a fit's `ring_flux` reports it.
     - `supersample`: $k$ (static).
 
     **Returns:** linear intensity `(height, width)`; captured rays are 0. Bad values
@@ -171,6 +171,3 @@ def samples_for(ring_width_px, block, lowest: int = 2):
 
 
 # Former names, kept while modules outside this one still import them by these.
-_chunks = chunk_layout
-_pixel_edges = pixel_edges
-_samples_for = samples_for

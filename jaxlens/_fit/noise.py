@@ -74,24 +74,43 @@ def _mad_level(d) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(6.0))
 
 
+# The most pixels the noise estimate reads: a larger image is read in bands of rows
+# spread over its height (white noise is the same everywhere; the temporaries stay
+# those of this many pixels).
+_NOISE_PIXELS = 1 << 22
+_BAND_ROWS = 256
+
+
 def _flat_differences(img) -> np.ndarray:
     """The second differences (rows and columns, finite) where the image is flat: not
     where the image smoothed by a Gaussian of 1.5 px curves by more than 3 of its own
     robust standard deviations, nor within 2 px of such a place. The ring's and the
     arcs' curvature, which the median absolute deviation of every difference takes for
     noise (10-25 % too much on a ring 1-3 px wide over 12 % of the pixels), is left
-    out; on white noise the estimate moves by 0.2 %."""
-    img = np.asarray(img, np.float64)
-    fill = np.where(np.isfinite(img), img, np.nanmedian(img))
-    smooth = scipy.ndimage.gaussian_filter(fill, 1.5, mode="nearest")
+    out; on white noise the estimate moves by 0.2 %. An image of more than
+    `_NOISE_PIXELS` is read in bands of `_BAND_ROWS` rows spread over its height."""
+    h, w = np.shape(img)
+    bands = max(1, min(-(-h // _BAND_ROWS), _NOISE_PIXELS // max(_BAND_ROWS * w, 1)))
+    if bands * _BAND_ROWS >= h:
+        starts = [0]
+        rows = h
+    else:
+        starts = np.linspace(0, h - _BAND_ROWS, bands).astype(int)
+        rows = _BAND_ROWS
+    fill_value = float(np.nanmedian(img[:: max(1, h // 512), :: max(1, w // 512)]))
     kept = []
-    for axis in (1, 0):
-        raw = np.diff(img, 2, axis=axis)
-        curve = np.diff(smooth, 2, axis=axis)
-        spread = 1.4826 * np.median(np.abs(curve - np.median(curve)))
-        flat = ~scipy.ndimage.binary_dilation(np.abs(curve) > 3.0 * spread, iterations=2)
-        d = raw[flat]
-        kept.append(d[np.isfinite(d)])
+    for r0 in starts:
+        band = np.asarray(img[r0 : r0 + rows], np.float64)
+        fill = np.where(np.isfinite(band), band, fill_value)
+        smooth = scipy.ndimage.gaussian_filter(fill, 1.5, mode="nearest")
+        del fill
+        for axis in (1, 0):
+            curve = np.diff(smooth, 2, axis=axis)
+            spread = 1.4826 * np.median(np.abs(curve - np.median(curve)))
+            flat = ~scipy.ndimage.binary_dilation(np.abs(curve) > 3.0 * spread, iterations=2)
+            del curve
+            d = np.diff(band, 2, axis=axis)[flat]
+            kept.append(d[np.isfinite(d)])
     return np.concatenate(kept)
 
 
@@ -141,9 +160,9 @@ def white_noise_found(img) -> tuple[bool, float]:
 
 def clipping_bounds(img):
     """Bounds at which the stored values were clipped: 0 (1) when at least 0.2 % of the
-    pixels sit exactly there, else -inf (inf)."""
-    lo = 0.0 if img.min() == 0.0 and np.mean(img == 0.0) > 2e-3 else -math.inf
-    hi = 1.0 if img.max() == 1.0 and np.mean(img == 1.0) > 2e-3 else math.inf
+    pixels sit exactly there, else -inf (inf). NaN pixels are not counted as either."""
+    lo = 0.0 if np.nanmin(img) == 0.0 and np.mean(img == 0.0) > 2e-3 else -math.inf
+    hi = 1.0 if np.nanmax(img) == 1.0 and np.mean(img == 1.0) > 2e-3 else math.inf
     return lo, hi
 
 
@@ -162,6 +181,7 @@ def noise_clipped(img, prof, lo, hi) -> float:
         rho < 0.5 * np.nan_to_num(prof.inner_half, nan=0.0),
     ):
         v = img[region]
+        v = v[np.isfinite(v)]
         if v.size >= 200:
             q50, q84 = np.percentile(v, [50.0, 84.13])
             if q84 > q50 and q50 < hi:
@@ -205,9 +225,11 @@ class AbstractNoise(eqx.Module):
     name: eqx.AbstractClassVar[str]
 
     @abc.abstractmethod
-    def estimated(self, img, valid) -> "AbstractNoise":
+    def estimated(self, img, valid, *, profile=None, level=None) -> "AbstractNoise":
         """This model with what it does not give estimated from the image `img` (data
-        units, NaN kept) where `valid`: the form `residuals` takes."""
+        units, NaN where not `valid`): the form `residuals` takes. `profile`: the
+        image's radial profile (`starts.radial_profile`), where the estimate needs the
+        flat sky; `level`: `noise_estimate(img)` where the caller has it."""
 
     @abc.abstractmethod
     def residuals(self, model, data, weight):
@@ -262,17 +284,17 @@ class Gaussian(AbstractNoise):
     def level_given(self) -> bool:
         return self.sigma is not None and float(self.rel) == 0.0
 
-    def estimated(self, img, valid, *, profile=None) -> "Gaussian":
-        gray = np.where(valid, img, np.nanmedian(img[valid]))
-        lo, hi = clipping_bounds(gray)
+    def estimated(self, img, valid, *, profile=None, level=None) -> "Gaussian":
+        """(`level`: `noise_estimate(img)` where the caller has it already.)"""
+        lo, hi = clipping_bounds(img)
         given = self.level_given
         if given:
             sigma, rel = float(self.sigma), 0.0
         else:
-            sigma, rel = noise_estimate(gray)
+            sigma, rel = noise_estimate(img) if level is None else level
             if profile is not None and (math.isfinite(lo) or math.isfinite(hi)):
-                sigma = noise_clipped(gray, profile, lo, hi)
-        return self.with_level(sigma, lo, hi, float(np.nanmax(np.abs(img[valid]))), rel)
+                sigma = noise_clipped(img, profile, lo, hi)
+        return self.with_level(sigma, lo, hi, float(np.nanmax(np.abs(img))), rel)
 
     def with_level(self, sigma, lo, hi, data_scale, rel) -> "Gaussian":
         """The estimated form: level `sigma`, clipping `lo`, `hi`, the image's largest
@@ -307,7 +329,7 @@ class Poisson(AbstractNoise):
     def level_given(self) -> bool:
         return self.gain is not None and float(self.rel) == 0.0
 
-    def estimated(self, img, valid, *, profile=None) -> "Poisson":
+    def estimated(self, img, valid, *, profile=None, level=None) -> "Poisson":
         if self.level_given:
             return Poisson(np.float64(self.gain), np.float64(0.0))
         # The gain from tiles: as uncertain as the per-tile variances' median.

@@ -227,5 +227,3 @@ def pixel_sets(img, prof, rho_sh, max_pixels: int, block: int | None, *, valid=N
 
 
 # Former names, kept while modules outside this one still import them by these.
-_grid_sets = grid_sets
-_pixel_sets = pixel_sets

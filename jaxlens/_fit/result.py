@@ -92,8 +92,3 @@ def ring_verdict(names, values, errors, corr, shadow_seen: bool):
             vif,
         )
     return False, "", vif
-
-
-# (old names, used by general.py until it moves)
-_result_name = result_name
-_ring_verdict = ring_verdict

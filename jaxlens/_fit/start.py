@@ -18,6 +18,7 @@ from .._util import to_device
 from . import starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import samples_for
+from .noise import noise_estimate
 from .objective import Data, Problem, loss, select
 from .observation import Observation
 from .params import apply, floor_of, in_scene, parameter, values_of
@@ -50,7 +51,8 @@ class Look:
     """What the image shows, before any model: `grey` (the image, invalid pixels at the
     median), `prof` (its radial profile about the centre, `starts.profile`), `arcs`
     (`find_arcs`), `found` (arcs stand out), `arc_like` (arcs, not a ring: offset by
-    more than a pixel and half their width), `masked` (NaN where not valid)."""
+    more than a pixel and half their width), `masked` (NaN where not valid), `level`
+    (`noise.noise_estimate`: the per-pixel noise and its relative spread)."""
 
     grey: np.ndarray
     masked: np.ndarray
@@ -58,6 +60,7 @@ class Look:
     arcs: object
     found: bool
     arc_like: bool
+    level: tuple
 
     @property
     def edge_seen(self) -> float:
@@ -73,8 +76,9 @@ def look(obs: Observation) -> Look:
     """The image's radial profile and arcs; a `ValueError` when neither a ring nor arcs
     stand out of the noise, or the ring is under `SMALLEST_RING_PX` in radius."""
     grey = np.where(obs.valid, obs.data, np.nanmedian(obs.data[obs.valid]))
-    prof = starts.radial_profile(grey)
-    arcs = find_arcs(obs.data)
+    level = noise_estimate(obs.data)
+    prof = starts.radial_profile(grey, noise=level[0])
+    arcs = find_arcs(obs.data, noise=level[0])
     found = arcs.score > 10.0
     arc_like = found and arcs.offset > max(1.0, 0.5 * arcs.ring_width)
     if arc_like:
@@ -94,7 +98,7 @@ def look(obs: Observation) -> Look:
         raise ValueError(f"the ring is {prof.ring_radius:.2g} px in radius on a {w} x {h} image: "
                          "too few pixels to separate the distance from the field of view (the "
                          "shadow's edge and the ring's width need more)")  # fmt: skip
-    return Look(grey, obs.data, prof, arcs, found, arc_like)
+    return Look(grey, obs.data, prof, arcs, found, arc_like, level)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -294,7 +298,7 @@ def _arcs_candidates(arcs, width: int, blur_px: float = 0.0):
     radius: `(distance, fov, focal, sigma)` arrays (R_S, radians, pixels, radians),
     sigma the star width the arcs' radial width implies (radial magnification 1/2 at
     the Einstein ring, the blur `blur_px` and the pixel removed in quadrature)."""
-    d, a_e, _, _ = starts._ring_table()
+    d, a_e, _, _ = starts.ring_table()
     f = arcs.ring_radius / np.tan(a_e)
     fov = 2.0 * np.arctan(0.5 * width / f)
     ok = (fov > math.radians(0.05)) & (fov < math.radians(179.0))

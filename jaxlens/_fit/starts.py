@@ -41,7 +41,7 @@ def compute_ring_table():
 
 
 @functools.cache
-def _ring_table():
+def ring_table():
     """The stored `compute_ring_table()` (`ring_table_data`), as numpy arrays."""
     t = ring_table_data
     return tuple(np.asarray(v) for v in (t.DISTANCE, t.ALPHA_E, t.ALPHA_SH, t.SLOPE))
@@ -340,7 +340,7 @@ def _ring_candidates(prof: _Profile, width: int, sigma):
     """(D, fov, sigma) along the exact ring relation: for each D of the table, the FOV
     that puts the ring at the measured radius; sigma is the known one, or NaN for the
     candidate program to take from the half-maximum radii."""
-    d, a_e, _, _ = _ring_table()
+    d, a_e, _, _ = ring_table()
     focal = prof.ring_radius / np.tan(a_e)
     fov = 2.0 * np.arctan(0.5 * width / focal)
     sig = np.full_like(d, np.nan if sigma is None else sigma)
@@ -360,7 +360,7 @@ def _from_init(init, prof: _Profile, width: int, sigma):
             f"init={init!r} must be a dict with 'distance' (R_S) and 'fov' (radians) or 'fov_deg'"
         ) from e
     s0 = sigma if sigma is not None else init.get("sigma", np.nan)
-    d, a_e, _, _ = _ring_table()
+    d, a_e, _, _ = ring_table()
     if not (d[0] <= d0 <= d[-1]) or not (0 < fov0 < math.pi):
         raise ValueError(
             f"init distance={d0!r} R_S must be in [{d[0]:.3g}, {d[-1]:.3g}] and fov={fov0!r} "
@@ -382,7 +382,7 @@ def distance_from_radii(ring_px: float, shadow_px: float, width: int):
     pixels (a camera pointed at the hole): their ratio $\tan\alpha_E / \tan\alpha_{sh}$
     depends on D alone (it grows as ~0.54 sqrt(D)), and the ring's radius then fixes the
     focal length. `None` when the ratio lies outside the table ($D$ 1.9 ... 1e5)."""
-    d, a_e, sh, _ = _ring_table()
+    d, a_e, sh, _ = ring_table()
     ratio = np.tan(a_e) / np.tan(sh)
     if not shadow_px > 0:  # a shadow found with no extent (a stretched image)
         return None
@@ -466,4 +466,3 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale):
 
 
 # Former name, kept while modules outside this one still import it by it.
-_profile = radial_profile
