@@ -177,7 +177,11 @@ class Fit:
             verdict += ", FLAGGED (not a valid measurement)"
         noise = ""
         if self.noise == "gaussian":
-            noise = f" (residuals {self.residual_noise:.3g} per pixel)"
+            noise = f"residuals {self.residual_noise:.3g} per pixel"
+        if math.isfinite(self.goodness):
+            sep = ", " if noise else ""
+            noise += f"{sep}{self.goodness:+.2g} standard deviations from the noise"
+        noise = f" ({noise})" if noise else ""
         lines.append(
             f"{verdict}; chi2/dof {self.chi2_dof:.3g}{noise}; {self.n_pixels} pixels (bins "
             f"of {self.block}), k = {self.supersample}; {self.num_steps} steps; "
