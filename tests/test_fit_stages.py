@@ -68,6 +68,15 @@ def test_an_estimated_level_widens_the_limit():
     assert small.excess(1.1 * 5000, 5000) < given.excess(1.1 * 5000, 5000)
 
 
+def test_a_noiseless_image_estimates_a_zero_level():
+    # A rendered, quantised image: flat regions with no noise at all. The level is 0 (the
+    # fit flags "no pixel noise found"), and the residuals' unit stays positive.
+    img = np.round(_ring() * 255) / 255
+    noise = jl.Gaussian().estimated(img, np.ones(img.shape, bool))
+    assert float(noise.sigma) == 0.0 and float(noise.scale) > 0.0
+    assert not noise.level_given
+
+
 def test_noise_models_from_what_fit_takes():
     assert isinstance(as_noise(None), jl.Gaussian) and not as_noise(None).level_given
     assert as_noise(0.01).level_given and float(as_noise(0.01).sigma) == 0.01

@@ -276,8 +276,11 @@ class Gaussian(AbstractNoise):
     rel: Any = 0.0
 
     def __check_init__(self):
+        # A level given by the caller (the estimated form, with its `scale`, may be 0: a
+        # noiseless image, which the fit flags).
         s = self.sigma
-        if s is not None and not isinstance(s, jax.Array) and not (0.0 < float(s) < math.inf):
+        given = self.scale is None and not isinstance(s, jax.Array)
+        if s is not None and given and not (0.0 < float(s) < math.inf):
             raise ValueError(f"noise sigma={s!r} must be positive and finite (data units)")
 
     @property
