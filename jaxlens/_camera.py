@@ -24,7 +24,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._fastmath import arctan2, sin_cos
 from ._messages import shown
-from ._ray_inputs import _check_distance, _check_dtype, _check_real
+from ._ray_inputs import check_distance, check_dtype, check_real
 from ._util import as_float as _float, concrete as _concrete, is_zero as _is_zero
 
 
@@ -141,10 +141,10 @@ class Camera(eqx.Module):
         angles = {"fov": fov, "yaw": yaw, "pitch": pitch, "roll": roll,
                   "azimuth": azimuth, "elevation": elevation}  # fmt: skip
         for name, value in angles.items():
-            angles[name] = _check_real(name, value)
-        distance = _check_real("distance", distance)
+            angles[name] = check_real(name, value)
+        distance = check_real("distance", distance)
         fov, yaw, pitch, roll, azimuth, elevation = angles.values()
-        dtype = _check_dtype(jnp.result_type(float, distance, fov) if dtype is None else dtype)
+        dtype = check_dtype(jnp.result_type(float, distance, fov) if dtype is None else dtype)
         for name, value in angles.items():  # before the cast, which would give inf
             a = _concrete(value)
             with np.errstate(over="ignore"):
@@ -153,7 +153,7 @@ class Camera(eqx.Module):
                 raise ValueError(f"{name}={_cut(a)} must be finite in {dtype.name} (radians)")
         if _concrete(distance) is not None:
             # Before the cast: 1e300 in float32 is inf, 1 + 1e-9 is the horizon.
-            _check_distance(_concrete(distance), dtype)
+            check_distance(_concrete(distance), dtype)
         self.distance = _float(distance, dtype)
         self.fov = _float(fov, dtype)
         for name, top in (("width", MAX_SIDE), ("height", MAX_SIDE),
@@ -186,7 +186,7 @@ class Camera(eqx.Module):
                 raise ValueError(f"{name}={v} must be a whole number from 1 to {top:,}")
         d = _concrete(self.distance)
         if d is not None:  # (after `eqx.tree_at`, `approach`: values set without __init__)
-            _check_distance(d)
+            check_distance(d)
         f = _concrete(self.fov)
         if f is not None and (not np.all(np.isfinite(f)) or not np.all((f > 0) & (f < math.pi))):
             bad = f[~(np.isfinite(f) & (f > 0) & (f < math.pi))] if f.ndim else f
@@ -351,10 +351,10 @@ def _static(c: Camera) -> tuple:
 
 
 def _sweep(camera: Camera, name: str, values) -> Camera:
-    known = _concrete(_check_real(name, values))
+    known = _concrete(check_real(name, values))
     if known is not None:  # before the cast: 1e300 is inf in float32
         if name == "distance":
-            _check_distance(known, camera.dtype)
+            check_distance(known, camera.dtype)
         elif not np.all(np.isfinite(known)) or np.any(np.abs(known) > np.finfo(camera.dtype).max):
             bad = known[~(np.abs(known) <= np.finfo(camera.dtype).max)]
             raise ValueError(

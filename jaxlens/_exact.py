@@ -132,10 +132,10 @@ def shadow_angle(distance):
     **Returns:** $\\alpha_{sh}$ in radians, measured from the direction of the
     hole; above $\\pi/2$ for $D < 1.5$.
     """
-    return _shadow_angle(jnp.asarray(distance), jnp)
+    return shadow_angle_with(jnp.asarray(distance), jnp)
 
 
-def _shadow_angle(d, xp):
+def shadow_angle_with(d, xp):
     """`shadow_angle` with the array module `xp` (NumPy: on the host, nothing compiled)."""
     u0 = 1.0 / d
     s = B_CRIT * xp.sqrt((d - 1.0) / d) / d

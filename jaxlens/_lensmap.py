@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._camera import Camera, sky_direction
 from ._messages import shown
-from ._ray_inputs import DISTANCE_MESSAGE, _check_distance, _check_real, _distance_bad
+from ._ray_inputs import DISTANCE_MESSAGE, check_distance, check_real, distance_bad
 from ._raymap import RayMap
 from ._util import concrete
 
@@ -35,9 +35,9 @@ def _checked_map(ray_map: RayMap) -> RayMap:
     if not isinstance(ray_map, RayMap):
         raise TypeError(f"ray_map={shown(ray_map)} must be a RayMap (jl.RayMap.build(distance))")
     if concrete(ray_map.distance) is not None:
-        _check_distance(concrete(ray_map.distance))
+        check_distance(concrete(ray_map.distance))
         return ray_map
-    phi = eqx.error_if(ray_map.phi, _distance_bad(ray_map.distance), DISTANCE_MESSAGE)
+    phi = eqx.error_if(ray_map.phi, distance_bad(ray_map.distance), DISTANCE_MESSAGE)
     return eqx.tree_at(lambda m: m.phi, ray_map, phi)
 
 
@@ -45,7 +45,7 @@ def _checked_points(name: str, x, valid: str, bad_of):
     """`x` (real numbers) checked with `bad_of(x, xp)` (True where bad): a `ValueError`
     naming `name`, the first bad value and `valid` when known, `eqx.error_if` (one
     reduction) when traced."""
-    x = _check_real(name, x)
+    x = check_real(name, x)
     c = concrete(x)
     if c is not None:
         c = np.asarray(c, float)

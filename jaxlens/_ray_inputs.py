@@ -29,7 +29,7 @@ _DISTANCE_RANGE = (
 )
 
 
-def _check_real(name: str, x):
+def check_real(name: str, x):
     """`x` if it holds real numbers (a list or tuple as a NumPy array), else a TypeError
     naming `name` and the value (integers are converted; complex, bool, text and
     objects are not)."""
@@ -37,7 +37,7 @@ def _check_real(name: str, x):
     return checked if isinstance(x, list | tuple) else x
 
 
-def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
+def check_dtype(dtype, what: str = "dtype") -> np.dtype:
     """The float dtype rays are computed in, or a TypeError naming `what` (e.g.
     "dtype", or "alpha and distance"): float32 or float64 only."""
     try:
@@ -53,7 +53,7 @@ def _check_dtype(dtype, what: str = "dtype") -> np.dtype:
     return dt
 
 
-def _check_distance(distance, dtype=None):
+def check_distance(distance, dtype=None):
     """ValueError for a concrete bad distance: not finite, <= 1, beyond `MAX_DISTANCE`,
     or > 1 as given but rounded to the horizon in `dtype` (the dtype the rays are traced
     in); eqx.error_if under jit."""
@@ -62,7 +62,7 @@ def _check_distance(distance, dtype=None):
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
         d = None
     if d is not None:
-        _check_real("distance", d)
+        check_real("distance", d)
         top = _MAX_COMPARED
         d = d.astype(np.float64)
         bad = ~np.isfinite(d) | ~(d > 1.0)
@@ -86,7 +86,7 @@ def _check_distance(distance, dtype=None):
                 "jax_enable_x64 on for a camera this close"
             )
         return distance
-    return eqx.error_if(distance, _distance_bad(distance), DISTANCE_MESSAGE)
+    return eqx.error_if(distance, distance_bad(distance), DISTANCE_MESSAGE)
 
 
 DISTANCE_MESSAGE = (
@@ -95,18 +95,18 @@ DISTANCE_MESSAGE = (
 )
 
 
-def _distance_bad(distance):
-    """Where a traced `distance` is out of range (the predicate of `_check_distance`)."""
+def distance_bad(distance):
+    """Where a traced `distance` is out of range (the predicate of `check_distance`)."""
     return ~jnp.isfinite(distance) | ~(distance > 1.0) | (distance > _MAX_COMPARED)
 
 
-_ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"
+ALPHA_RANGE = "in [0, pi] radians (0 points at the hole, pi straight away)"
 # The top of that range as checked: pi rounded to float32 (8.7e-8 above pi), so that a
 # float32 pi, widened to float64, is still straight away.
 _ALPHA_TOP = float(np.float32(np.pi))
 
 
-def _bad_alpha(alpha):
+def bad_alpha(alpha):
     """ValueError for a concrete local angle outside [0, pi] (NaN included); for traced
     ones, the predicate (one comparison a ray) that `trace` puts on its result with
     `eqx.error_if`, so that the rays do not wait for the check. `None` when checked."""
@@ -116,7 +116,7 @@ def _bad_alpha(alpha):
         if np.any(bad):
             raise ValueError(
                 f"alpha={shown(a[bad].flat[0])} is not a valid local angle: it must be "
-                + _ALPHA_RANGE
+                + ALPHA_RANGE
             )
         return None
     return jnp.any(~((alpha >= 0) & (alpha <= _ALPHA_TOP)))

@@ -24,7 +24,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._compile import program
-from ._ray_inputs import _check_distance, _check_dtype, _check_real
+from ._ray_inputs import check_distance, check_dtype, check_real
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
 from ._util import fusion_barrier, is_concrete, tracing
 
@@ -122,9 +122,9 @@ class RayMap(eqx.Module):
         a `ValueError`/`TypeError` eagerly, an `eqx.error_if` error at run time under
         `jit`.
         """
-        distance = _check_real("distance", distance)
-        dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
-        distance = _check_distance(distance, dtype)
+        distance = check_real("distance", distance)
+        dtype = check_dtype(jnp.result_type(float, distance), "dtype of distance")
+        distance = check_distance(distance, dtype)
         return tabulate(
             distance, accuracy=accuracy, knots=knots, max_windings=max_windings,
             captured=captured, alpha_max=alpha_max, exact_slopes=exact_slopes,

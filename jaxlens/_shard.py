@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from ._ray_inputs import _check_distance
+from ._ray_inputs import check_distance
 from ._status import TraceResult
 from ._trace import trace
 
@@ -209,7 +209,7 @@ def trace_sharded(
     **Returns:** a `TraceResult` of NumPy arrays of the broadcast shape.
     """
     # The same ValueError as `trace`, raised on the host before anything is compiled.
-    _check_distance(np.asarray(distance))
+    check_distance(np.asarray(distance))
     if np.ndim(alpha) == 0 and np.ndim(distance) == 0:
         alpha = np.reshape(alpha, (1,))
         out = trace_sharded(

@@ -16,11 +16,11 @@ from ._integrators import ButcherTableau, integrate, rk_step
 from ._messages import shown
 from ._orbit import acceleration
 from ._ray_inputs import (
-    _ALPHA_RANGE,
-    _bad_alpha,
-    _check_distance,
-    _check_dtype,
-    _check_real,
+    ALPHA_RANGE,
+    bad_alpha,
+    check_distance,
+    check_dtype,
+    check_real,
 )
 from ._raymap import placeholder, tabulate
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus, TraceResult
@@ -349,11 +349,11 @@ def trace(
             f"method={shown(method)} must be one of {', '.join(map(repr, METHODS))} or an "
             "AbstractMethod instance (e.g. jl.RK4(dphi=0.01))"
         )
-    alpha = _check_real("alpha", alpha)
-    distance = _check_real("distance", distance)
-    dtype = _check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
-    distance = _check_distance(distance, dtype)
-    bad_alpha = _bad_alpha(alpha)
+    alpha = check_real("alpha", alpha)
+    distance = check_real("distance", distance)
+    dtype = check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
+    distance = check_distance(distance, dtype)
+    alpha_bad = bad_alpha(alpha)
     traced = tracing() or has_tracer(alpha, distance)
     # Host distances stay on the host (padded there by `_eager`, nothing compiled).
     distance = (jnp if isinstance(distance, jax.Array) else np).asarray(distance, dtype)
@@ -365,8 +365,8 @@ def trace(
         result = method(jnp.asarray(alpha, dtype), distance, max_windings)
     else:  # host rays are padded on the host, not copied to the device first
         result = _eager(method, alpha, distance, dtype, max_windings)
-    if bad_alpha is not None:
-        phi = eqx.error_if(result.phi, bad_alpha, "alpha must be " + _ALPHA_RANGE)
+    if alpha_bad is not None:
+        phi = eqx.error_if(result.phi, alpha_bad, "alpha must be " + ALPHA_RANGE)
         result = eqx.tree_at(lambda r: r.phi, result, phi)
     if throw:
         phi = RayStatus.unresolved.error_if(result.phi, jnp.any(result.unresolved))

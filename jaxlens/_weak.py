@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike
 
 from ._exact import B_CRIT
-from ._ray_inputs import _ALPHA_RANGE, _bad_alpha, _check_distance, _check_dtype, _check_real
+from ._ray_inputs import ALPHA_RANGE, bad_alpha, check_distance, check_dtype, check_real
 
 # Coefficients c_n of (1 - x)^(-1/2) = sum c_n x^n.
 _C = (1.0, 0.5, 0.375, 0.3125, 0.2734375)
@@ -80,14 +80,14 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
 
     if order not in (1, 2, 3):
         raise ValueError(f"order={order!r} must be 1, 2 or 3")
-    alpha = _check_real("alpha", alpha)
-    distance = _check_real("distance", distance)
-    dtype = _check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
-    distance = _check_distance(distance, dtype)
-    bad = _bad_alpha(alpha)
+    alpha = check_real("alpha", alpha)
+    distance = check_real("distance", distance)
+    dtype = check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
+    distance = check_distance(distance, dtype)
+    bad = bad_alpha(alpha)
     phi, bound = weak_field_series(alpha, distance, order=order)
     if bad is not None:
-        phi = eqx.error_if(phi, bad, "alpha must be " + _ALPHA_RANGE)
+        phi = eqx.error_if(phi, bad, "alpha must be " + ALPHA_RANGE)
     return phi, bound
 
 

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from .._camera import Camera
-from .._exact import _shadow_angle
+from .._exact import shadow_angle_with
 from .._psf import GaussianPSF
 from .._scene import Scene
 from .._util import to_device
@@ -167,7 +167,7 @@ def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, valu
         elif math.isfinite(seen.edge_seen):
             rho_sh = seen.edge_seen
         else:
-            rho_sh = f_px * math.tan(_shadow_angle(max(values["distance"], 1.6), np))
+            rho_sh = f_px * math.tan(shadow_angle_with(max(values["distance"], 1.6), np))
         level = float(noise.sigma) if hasattr(noise, "sigma") else prof.noise
         pix = pixel_sets(seen.grey, prof, rho_sh, opts.max_pixels or 40_000, opts.block,
                          valid=obs.valid, centre=centre,

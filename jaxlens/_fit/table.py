@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._messages import shown
-from .._ray_inputs import _check_distance, _check_dtype, _check_real
+from .._ray_inputs import check_distance, check_dtype, check_real
 from .._raymap import RayMap, tabulate
 from .._util import concrete
 from .._weak import _C, _I_HALF, weak_field_terms
@@ -50,9 +50,9 @@ def einstein_ring_angle(distance: ArrayLike) -> Float[Array, "..."]:
     **Returns:** $\\alpha_E$ (radians), e.g. 29.8283 deg at $D = 10$;
     $\\approx\\sqrt{2/D}$ for $D \\gg 1$; $\\pi/2$ at $D_{ring}$.
     """
-    distance = _check_real("distance", distance)
-    dtype = _check_dtype(jnp.result_type(float, distance), "dtype of distance")
-    distance = _check_distance(distance, dtype)
+    distance = check_real("distance", distance)
+    dtype = check_dtype(jnp.result_type(float, distance), "dtype of distance")
+    distance = check_distance(distance, dtype)
     known = concrete(distance)
     message = (
         f"is below {D_RING!r} R_S: the primary Einstein ring then lies beyond pi/2 from "
