@@ -161,7 +161,7 @@ def goodness_note(noise: AbstractNoise, chi2: float, dof: int, causes) -> str:
     z = noise.excess(chi2, dof)
     if not z > GOODNESS_SIGMAS:
         return ""
-    what = "residuals" if noise.name == "gaussian" else "deviance"
+    what = noise.statistic
     why = "; ".join(causes) if causes else "a model that does not describe the image"
     return (f"the {what} exceed the noise: chi2/dof {chi2 / max(dof, 1):.4g} over {dof} "
             f"degrees of freedom, {z:.3g} standard deviations above 1 (limit "
@@ -179,7 +179,7 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     rss = float(np.sum(sol.r[: sol.r.size - prior] ** 2))
     dof = max(n_data - len(free), 1)
     chi2_dof = rss / dof
-    scale2 = chi2_dof if noise.name == "gaussian" and not noise.level_given else 1.0
+    scale2 = noise.error_scale(chi2_dof)
     cov, corr, err, cond, finite = _covariance(sol.jac, sol.theta, free, sol.phys, scale2)
     ok = bool(sol.result == optx.RESULTS.successful)
     notes = [] if ok else [f"the solver stopped: {result_name(sol.result)}"]
@@ -209,8 +209,8 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     kept = {n: float(v) for n, v in kept.items()
             if n in free or n in ("distance", "fov")
             or split_name(n)[0] in ("source_lon", "source_lat", "sigma")}  # fmt: skip
-    gain = float(noise.gain) if noise.name == "poisson" else math.nan
-    sigma = float(noise.sigma) if noise.name == "gaussian" else seen.prof.noise
+    sigma, gain = noise.levels()
+    sigma = sigma if math.isfinite(sigma) else seen.level[0]
     return Fit(
         scene=scene, names=free, values=kept, errors={n: float(e) for n, e in zip(free, err)},
         covariance=cov, correlation=corr, start={n: float(v) for n, v in values.items()},

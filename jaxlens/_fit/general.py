@@ -165,8 +165,7 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
         noise = obs.noise.estimated(obs.data, obs.valid, profile=seen.prof, level=seen.level)
         # An estimated noise must be the image's own: a noiseless (rendered, averaged)
         # image gives errors that measure the misfit, not a measurement's scatter.
-        noise_seen = obs.noise.level_given or noise.name == "poisson"
-        noise_seen = noise_seen or white_noise_found(seen.grey)[0]
+        noise_seen = not noise.checked_for_white_noise or white_noise_found(seen.grey)[0]
         scan_d, scan_source = st.scans(seen, opts)
         early = _compile_early(obs, seen, noise, scene, opts, scan_d or scan_source)
         scale = max(seen.prof.peak + seen.prof.floor, 1e-12)

@@ -223,6 +223,7 @@ class AbstractNoise(eqx.Module):
     residuals (`excess`). A new noise model is a subclass of this one."""
 
     name: eqx.AbstractClassVar[str]
+    statistic: eqx.AbstractClassVar[str]  # what its residuals are called in a message
 
     @abc.abstractmethod
     def estimated(self, img, valid, *, profile=None, level=None) -> "AbstractNoise":
@@ -248,6 +249,27 @@ class AbstractNoise(eqx.Module):
         given): what the residuals' sum of squares is uncertain by beyond its own
         scatter."""
 
+    def error_scale(self, chi2_dof: float) -> float:
+        """The factor on the curvature's covariance: 1 where the noise's level is known
+        (given, or implied by the model as Poisson counts are)."""
+        return 1.0
+
+    def levels(self) -> tuple[float, float]:
+        """`(sigma, gain)` for a fit's record: the Gaussian level (data units) and the
+        Poisson gain (counts per data unit), NaN where the model has none."""
+        return math.nan, math.nan
+
+    @property
+    def checked_for_white_noise(self) -> bool:
+        """Whether the image must show pixel noise for the errors to mean a noise (a level
+        estimated from the image, as opposed to given or implied by counts)."""
+        return False
+
+    @property
+    def reestimated(self) -> bool:
+        """Whether a fit re-estimates the level from its first pass's residuals."""
+        return False
+
     def excess(self, chi2: float, dof: int) -> float:
         """How many standard deviations the residuals' sum of squares `chi2` over `dof`
         degrees of freedom lies above its expectation under this model: its own
@@ -269,6 +291,7 @@ class Gaussian(AbstractNoise):
     0: the level was given)."""
 
     name = "gaussian"
+    statistic = "residuals"
     sigma: Any = None
     lo: Any = -math.inf
     hi: Any = math.inf
@@ -309,6 +332,23 @@ class Gaussian(AbstractNoise):
     def residuals(self, model, data, weight):
         return weight * (clipped_mean(model, self.lo, self.hi, self.sigma) - data) / self.scale
 
+    def error_scale(self, chi2_dof: float) -> float:
+        # A level estimated from the image: the residuals set the errors' scale.
+        return 1.0 if self.level_given else float(chi2_dof)
+
+    def levels(self) -> tuple[float, float]:
+        return float(self.sigma), math.nan
+
+    @property
+    def checked_for_white_noise(self) -> bool:
+        return not self.level_given
+
+    @property
+    def reestimated(self) -> bool:
+        # Clipped values: the level from the flat sky, refined from the residuals.
+        clipped = bool(np.isfinite(self.lo) or np.isfinite(self.hi))
+        return not self.level_given and clipped
+
     def spread(self) -> float:
         return 0.0 if self.level_given else 2.0 * float(self.rel)
 
@@ -320,6 +360,7 @@ class Poisson(AbstractNoise):
     log-likelihood less its minimum, so least squares is the maximum-likelihood fit."""
 
     name = "poisson"
+    statistic = "deviance"
     gain: Any = None
     rel: Any = 0.0
 
@@ -339,6 +380,9 @@ class Poisson(AbstractNoise):
         tiles = max((img.shape[0] // 8) * (img.shape[1] // 8), 1)
         rel = _LEVEL_SPREAD / math.sqrt(64.0 * tiles)
         return Poisson(np.float64(gain_estimate(img, valid)), np.float64(rel))
+
+    def levels(self) -> tuple[float, float]:
+        return math.nan, float(self.gain)
 
     def residuals(self, model, data, weight):
         gain = self.gain

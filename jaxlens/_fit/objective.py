@@ -210,8 +210,7 @@ def renoise_placeholders(d: Data, n_theta: int):
 def two_passes(noise) -> bool:
     """Whether a fit re-estimates the noise from its residuals after a first pass: a
     Gaussian noise estimated from an image whose values are clipped."""
-    return (noise.name == "gaussian" and not noise.level_given
-            and bool(np.isfinite(noise.lo) or np.isfinite(noise.hi)))  # fmt: skip
+    return noise.reestimated
 
 
 def solve_passes(theta0, d: Data, prob: Problem, free, *, rtol, atol, max_steps):
