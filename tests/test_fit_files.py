@@ -97,6 +97,20 @@ def test_untagged_linear_png_read_as_srgb_is_flagged(linear_png):
     assert not fit.valid or _within(fit), _said(fit)
 
 
+def test_untagged_srgb_png_under_auto_right_or_flagged(folder):
+    # The other way round: sRGB-encoded values (the noise added to the linear light)
+    # in a PNG without a colour chunk. Both decodings fit the noise's level here; the
+    # linear one's residuals grow with brightness, so sRGB is the file's.
+    img = np.clip(ui.ring(W, H, noise=0.01, seed=21), 0.0, 1.0)
+    path = ui.write_png(folder / "srgb16.png", ui.quantise(ui.srgb_encode(img), 16))
+    assert ui.png_chunks(path) == [b"IHDR", b"IDAT", b"IEND"]
+    fit = jl.fit_ring(path, star_sigma=STAR)
+    if fit.valid:
+        assert _within(fit) and fit.transfer == "srgb", _said(fit)
+    else:
+        assert "transfer" in fit.message, _said(fit)
+
+
 # --- a point-spread function the fit is not told of ---------------------------------------
 
 

@@ -133,7 +133,19 @@ def test_goodness_note_only_beyond_the_limit():
     assert "exceed the noise" in note and "a cause" in note and "1.95" in note
 
 
-def _fit_like(transfer, distance, error, goodness, converged=True):
+def test_noise_trend_sees_a_noise_that_grows_with_brightness():
+    rng = np.random.default_rng(8)
+    model = rng.uniform(0.0, 1.0, 6000)
+    flat = rng.standard_normal(6000)
+    growing = flat * (0.5 + model)  # twice the scatter at the top as at the bottom
+    assert abs(diagnose.noise_trend(flat, model, -np.inf, np.inf, 0.01)) < 5.0
+    assert diagnose.noise_trend(growing, model, -np.inf, np.inf, 0.01) > 20.0
+    # Bins near a clipping bound are left out (their noise is shrunk by the clipping).
+    clipped = np.where(model < 0.05, 0.3 * flat, flat)
+    assert abs(diagnose.noise_trend(clipped, model, 0.0, np.inf, 0.02)) < 5.0
+
+
+def _fit_like(transfer, distance, error, goodness, converged=True, trend=0.0):
     return jl.Fit(
         scene=None, names=("distance",), values={"distance": distance},
         errors={"distance": error}, covariance=np.eye(1), correlation=np.eye(1), start={},
@@ -141,7 +153,7 @@ def _fit_like(transfer, distance, error, goodness, converged=True):
         model=np.zeros((2, 2)), residuals=np.zeros((2, 2)), n_pixels=100, block=1,
         supersample=2, result=None, result_name="successful", num_steps=3,
         variance_inflation=1.0, converged=converged, degenerate=False, message="",
-        seconds=1.0, transfer=transfer, transfer_reason="", goodness=goodness,
+        seconds=1.0, transfer=transfer, transfer_reason="", goodness=goodness, noise_trend=trend,
     )  # fmt: skip
 
 
@@ -156,6 +168,15 @@ def test_two_decodings_that_both_fit_but_disagree_are_flagged():
     srgb, linear = _fit_like("srgb", 18.0, 0.5, 1.0), _fit_like("linear", 37.5, 0.5, 0.5)
     chosen = general._decoding_chosen([srgb, linear], 2.0)
     assert not chosen.valid and "transfer=" in chosen.message
+
+
+def test_of_two_decodings_that_fit_the_noise_level_the_flat_one_is_kept():
+    # Both fit the noise's level to different values, but one decoding's residuals grow
+    # with brightness: the other is the file's.
+    srgb = _fit_like("srgb", 20.0, 0.5, 0.5, trend=-0.4)
+    linear = _fit_like("linear", 25.3, 0.5, -0.3, trend=-39.7)
+    chosen = general._decoding_chosen([srgb, linear], 2.0)
+    assert chosen.transfer == "srgb" and chosen.valid and "brightness" in chosen.transfer_reason
 
 
 def test_two_decodings_that_both_fit_and_agree_are_valid():

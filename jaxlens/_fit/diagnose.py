@@ -155,6 +155,28 @@ def likely_causes(obs, grey, model_img, resid_img, block: int, psf_given: bool) 
     return causes
 
 
+def noise_trend(r, model, lo, hi, sigma) -> float:
+    """How the residuals' scatter changes with the model's level, in standard
+    deviations: the log ratio of their variance over the brightest third of the
+    compared bins to that over the faintest third, over its standard error
+    $\\sqrt{2/n_1 + 2/n_2}$ (about N(0, 1) where the noise model holds; a wrong decoding
+    of the values makes the noise grow or shrink with brightness). Bins within 3 noise
+    sigmas of a clipping bound, whose noise the clipping shrinks, are left out; NaN
+    with fewer than 30 bins a third."""
+    r, model = np.asarray(r, np.float64), np.asarray(model, np.float64)
+    ok = np.isfinite(r) & np.isfinite(model) & (r != 0.0)
+    ok &= (model > lo + 3.0 * sigma) & (model < hi - 3.0 * sigma)
+    if ok.sum() < 90:
+        return math.nan
+    m, v = model[ok], r[ok]
+    faint, bright = np.quantile(m, [1.0 / 3.0, 2.0 / 3.0])
+    lo_r, hi_r = v[m <= faint], v[m >= bright]
+    if min(lo_r.size, hi_r.size) < 30 or not (np.var(lo_r) > 0 and np.var(hi_r) > 0):
+        return math.nan
+    ratio = math.log(float(np.mean(hi_r**2)) / float(np.mean(lo_r**2)))
+    return ratio / math.sqrt(2.0 / hi_r.size + 2.0 / lo_r.size)
+
+
 def goodness_note(noise: AbstractNoise, chi2: float, dof: int, causes) -> str:
     """The note when the residuals exceed the noise model by more than
     `GOODNESS_SIGMAS` of the statistic's spread, with the likely causes; "" else."""
@@ -193,6 +215,8 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     model_img = pix.paint(sol.model)
     resid_img = pix.paint(np.where(pix.count > 0, pix.data - sol.model, np.nan))
     goodness = math.nan
+    lo, hi = (float(getattr(noise, n, b)) for n, b in (("lo", -math.inf), ("hi", math.inf)))
+    trend = noise_trend(sol.r[: sol.r.size - prior], sol.model, lo, hi, seen.level[0])
     if not noise_seen:
         notes.append("no pixel noise found in the image (a noiseless or smoothed one?): the "
                      "errors measure the misfit, not a noise; give the noise level "
@@ -220,5 +244,5 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
         num_steps=int(sol.steps), variance_inflation=float(vif_ring),
         converged=bool(converged), degenerate=degenerate, message="; ".join(notes),
         seconds=time.perf_counter() - t_start, transfer=obs.transfer,
-        transfer_reason=obs.transfer_reason, goodness=float(goodness),
+        transfer_reason=obs.transfer_reason, goodness=float(goodness), noise_trend=trend,
     )  # fmt: skip

@@ -56,6 +56,10 @@ class Fit:
       uncertainty: `AbstractNoise.excess`); above 5 the model does not describe the
       image and `message` says so with the likely cause; NaN where the image shows no
       pixel noise to judge by. `fits_noise` (property): at most 5.
+    - `noise_trend`: how the residuals' scatter grows with the model's level, in standard
+      deviations (the log ratio of their variance over the brightest and faintest thirds
+      of the compared bins; about N(0, 1) where the noise model holds). A wrong decoding
+      of a file's values makes it large; `fit` uses it to choose an untagged file's.
     - `residual_noise` (property): the residuals' standard deviation per compared pixel
       (data units), $\\sqrt{\\chi^2/\\mathrm{dof}}$ times `noise_sigma`; NaN under Poisson
       noise, whose level varies with the model.
@@ -92,6 +96,7 @@ class Fit:
     transfer: str | None = None
     transfer_reason: str = ""
     goodness: float = math.nan
+    noise_trend: float = math.nan
 
     @property
     def fits_noise(self) -> bool:
@@ -154,7 +159,8 @@ class Fit:
             n_pixels=self.n_pixels, block=self.block, supersample=self.supersample,
             result=self.result_name, num_steps=self.num_steps,
             variance_inflation=self.variance_inflation, seconds=self.seconds,
-            transfer=self.transfer, transfer_reason=self.transfer_reason, goodness=self.goodness,
+            transfer=self.transfer, transfer_reason=self.transfer_reason,
+            goodness=self.goodness, noise_trend=self.noise_trend,
         )  # fmt: skip
         return out
 

@@ -230,8 +230,10 @@ def _agree(a: Fit, b: Fit) -> bool:
 
 def _decoding_chosen(fits: list, seconds: float) -> Fit:
     """Of the fits of an untagged file under its sRGB and linear decodings, the one
-    whose residuals fit the noise (`Fit.goodness`); where both do and disagree, or
-    neither does, the better one flagged with a message naming `transfer=`."""
+    whose residuals fit the noise (`Fit.goodness`), or where both do and disagree, the
+    one whose residuals' scatter does not change with brightness (`Fit.noise_trend`);
+    where that cannot decide, the better one flagged with a message naming
+    `transfer=`."""
     best = min(fits, key=lambda f: (not f.converged, f.goodness if math.isfinite(f.goodness)
                                     else f.chi2_dof))  # fmt: skip
     others = [f for f in fits if f is not best]
@@ -247,6 +249,14 @@ def _decoding_chosen(fits: list, seconds: float) -> Fit:
     elif len(passing) == 2 and _agree(*fits):
         reason = ("untagged file: its sRGB and linear decodings both fit the noise and agree; "
                   f"kept the {name[best.transfer]} one (the lower chi2)")  # fmt: skip
+    elif len(passing) == 2 and len(flat := [f for f in fits if abs(f.noise_trend) <= 5.0]) == 1:
+        # Both fit the noise's level, to different values: the right decoding leaves a
+        # noise that does not change with brightness.
+        best, other = flat[0], next(f for f in fits if f is not flat[0])
+        reason = (f"untagged file: both decodings fit the noise's level, but the "
+                  f"{name[other.transfer]} one's residuals change with brightness "
+                  f"({other.noise_trend:+.3g} standard deviations), the "
+                  f"{name[best.transfer]} one's do not ({best.noise_trend:+.2g})")  # fmt: skip
     else:
         what = "both fit the noise, to different values" if passing else "neither fits the noise"
         d = ", ".join(f"D = {f.values['distance']:.5g} ({name[f.transfer]})" for f in fits)
