@@ -11,7 +11,13 @@ import scipy.ndimage
 
 import jaxlens as jl
 from jaxlens._fit import diagnose, general, start
-from jaxlens._fit.noise import GOODNESS_SIGMAS, as_noise, noise_level, noise_level_spread
+from jaxlens._fit.noise import (
+    GOODNESS_SIGMAS,
+    as_noise,
+    clipping_bounds,
+    noise_level,
+    noise_level_spread,
+)
 
 
 def _ring(h=96, w=128, radius=30.0, width=2.0, floor=0.05, peak=0.8):
@@ -118,12 +124,13 @@ def test_likely_causes_name_clipping_blur_and_transfer():
     model = _ring(width=1.2, peak=2.0)
     data = np.minimum(scipy.ndimage.gaussian_filter(model, 2.0, mode="nearest"), 1.0)
     obs = _observed(data)
-    causes = diagnose.likely_causes(obs, data, model, data - model, 1, psf_given=False)
+    hi = clipping_bounds(data)[1]
+    causes = diagnose.likely_causes(obs, data, model, data - model, 1, False, hi)
     text = "; ".join(causes)
     assert "clipped" in text and "PSF" in text and "psf=" in text
     untagged = dataclasses.replace(obs, transfer="srgb", transfer_tagged=False)
     assert "transfer" in "; ".join(diagnose.likely_causes(untagged, data, model, data - model,
-                                                          1, psf_given=False))  # fmt: skip
+                                                          1, False, hi))  # fmt: skip
 
 
 def test_goodness_note_only_beyond_the_limit():

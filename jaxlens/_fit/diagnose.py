@@ -132,12 +132,13 @@ def blur_excess(model_img, resid_img, block: int) -> float:
     return block * best
 
 
-def likely_causes(obs, grey, model_img, resid_img, block: int, psf_given: bool) -> list[str]:
+def likely_causes(obs, grey, model_img, resid_img, block: int, psf_given: bool,
+                  hi: float) -> list[str]:  # fmt: skip
     """What most likely makes residuals exceed the noise, each as advice: pixels stored
     at the format's range (saturated or cut at black), an image more blurred than the
-    model (a PSF missing or too narrow), a file whose decoding was assumed."""
+    model (a PSF missing or too narrow), a file whose decoding was assumed. `hi`: the
+    image's upper clipping bound (`clipping_bounds`; inf where it is not clipped)."""
     causes = []
-    lo, hi = clipping_bounds(grey)
     if math.isfinite(hi):
         share = float(np.mean(grey[obs.valid] >= hi))
         causes.append(f"{100 * share:.2g} % of the pixels are clipped at the format's "
@@ -210,8 +211,8 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
         notes.append("at the bound of its range: " + ", ".join(at_bound))
     more, degenerate, vif_ring = _separation_notes(free, sol.phys, err, corr, cond,
                                                    seen.shadow_seen)  # fmt: skip
-    clipped = math.isfinite(clipping_bounds(seen.grey)[1])
-    notes += more + _nuisance_notes(free, sol.phys, err, obs.psf is not None, clipped)
+    top = clipping_bounds(seen.grey)[1]
+    notes += more + _nuisance_notes(free, sol.phys, err, obs.psf is not None, math.isfinite(top))
     model_img = pix.paint(sol.model)
     resid_img = pix.paint(np.where(pix.count > 0, pix.data - sol.model, np.nan))
     goodness = math.nan
@@ -223,7 +224,7 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
                      "(noise=, --noise SIGMA) for errors that do")  # fmt: skip
     else:
         causes = likely_causes(obs, seen.grey, model_img, resid_img, pix.block,
-                               obs.psf is not None)  # fmt: skip
+                               obs.psf is not None, top)  # fmt: skip
         goodness = noise.excess(rss, dof)
         note = goodness_note(noise, rss, dof, causes)
         if note:

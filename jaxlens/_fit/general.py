@@ -19,7 +19,7 @@ from .arcs import find_arcs
 from .diagnose import Solution, diagnose
 from .fit_result import Fit
 from .noise import white_noise_found
-from .objective import loss, renoise_placeholders, solve, solve_passes, two_passes
+from .objective import loss, renoise_placeholders, solve, solve_passes
 from .observation import Observation, observe
 from .params import apply, in_scene, parameter, split_name, star_of
 
@@ -182,7 +182,7 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
         # the start's scans compile and run, and the noise check where a second pass
         # may need it.
         later = [_solve_call(s, settings)]
-        if two_passes(s.data.noise):
+        if s.data.noise.reestimated:
             later.append(renoise_placeholders(s.data, len(s.theta0)))
         with ahead(*later), early:
             theta0 = st.refine(s.theta0, seen, obs, s, opts, values, scan_d, scan_source)

@@ -207,22 +207,17 @@ def renoise_placeholders(d: Data, n_theta: int):
     return (renoised, model, d, d.noise, r, jac, moved)
 
 
-def two_passes(noise) -> bool:
-    """Whether a fit re-estimates the noise from its residuals after a first pass: a
-    Gaussian noise estimated from an image whose values are clipped."""
-    return noise.reestimated
-
-
 def solve_passes(theta0, d: Data, prob: Problem, free, *, rtol, atol, max_steps):
-    """Levenberg-Marquardt from `theta0`; where `two_passes`, the noise is re-estimated
-    from the first pass's residuals well inside the clipping range and a second pass
-    runs only if the new noise moves the optimum (`RENOISED_CHI2`).
+    """Levenberg-Marquardt from `theta0`; where the noise model is `reestimated`, its
+    level is re-estimated from the first pass's residuals well inside the clipping
+    range and a second pass runs only if the new noise moves the optimum
+    (`RENOISED_CHI2`).
 
     **Returns:** `(theta, r, jac, model, result, steps, noise)`: the residuals at
     `theta` to first order from the point the solve evaluated last (its Jacobian
     stands for theta's), and the noise model they are in units of."""
     settings = (to_device(rtol), to_device(atol), int(max_steps))
-    passes, steps = 2 if two_passes(d.noise) else 1, 0
+    passes, steps = 2 if d.noise.reestimated else 1, 0
     for i in range(passes):
         theta, r, jac, model, result, taken, moved = solve(to_device(theta0), d, prob, *settings)
         steps += int(taken)

@@ -51,11 +51,10 @@ class Look:
     """What the image shows, before any model: `grey` (the image, invalid pixels at the
     median), `prof` (its radial profile about the centre, `starts.profile`), `arcs`
     (`find_arcs`), `found` (arcs stand out), `arc_like` (arcs, not a ring: offset by
-    more than a pixel and half their width), `masked` (NaN where not valid), `level`
+    more than a pixel and half their width), `level`
     (`noise.noise_estimate`: the per-pixel noise and its relative spread)."""
 
     grey: np.ndarray
-    masked: np.ndarray
     prof: object
     arcs: object
     found: bool
@@ -98,7 +97,7 @@ def look(obs: Observation) -> Look:
         raise ValueError(f"the ring is {prof.ring_radius:.2g} px in radius on a {w} x {h} image: "
                          "too few pixels to separate the distance from the field of view (the "
                          "shadow's edge and the ring's width need more)")  # fmt: skip
-    return Look(grey, obs.data, prof, arcs, found, arc_like, level)
+    return Look(grey, prof, arcs, found, arc_like, level)
 
 
 @dataclasses.dataclass(frozen=True)
