@@ -203,3 +203,58 @@ def test_look_finds_the_ring():
     seen = start.look(jl.observe(_ring() + rng.normal(0.0, 0.01, (96, 128))))
     assert seen.prof.ring_radius == pytest.approx(30.0, abs=1.5)
     assert not seen.arc_like
+
+
+def test_sub_bins_are_no_wider_than_a_gaussian_psf():
+    g = jl.GaussianPSF
+    assert start.psf_sub_bins(g(2.0), 3, (480, 640), 2.0) == 2
+    assert start.psf_sub_bins(g(1.0), 2, (300, 400), 1.0) == 2
+    assert start.psf_sub_bins(g(1.5), 1, (240, 320), 1.5) == 1
+    # Within the sub-bins' budget: a 4096 x 4096 image in bins of 16 px.
+    n_bins = (4096 // 16) ** 2
+    sub = start.psf_sub_bins(g(1.5), 16, (4096, 4096), 1.5)
+    assert 1 <= sub < 16 and sub * sub * n_bins <= start.SUB_BINS
+
+
+def test_a_psf_image_is_applied_on_pixels_and_refused_beyond_their_budget():
+    psf = jl.ImagePSF(np.ones((5, 5)))
+    assert start.psf_sub_bins(psf, 3, (480, 640), 1.0) == 3
+    with pytest.raises(ValueError, match="crop it"):
+        start.psf_sub_bins(psf, 16, (4096, 4096), 1.0)
+
+
+def _model_of_bins(img, psf, block):
+    """The fit's model image of `img`'s bins of side `block` at the image's own truth."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxlens._fit import objective
+
+    scene = jl.Scene(jl.Camera(20.0, math.radians(60.0), 8, 8),
+                     jl.GaussianStar(math.radians(1.0)) + jl.Uniform(0.05))  # fmt: skip
+    obs = jl.observe(img, psf=psf, noise=0.01)
+    seen = start.look(obs)
+    opts = start.Options(("distance", "fov"), {}, block, None, None, 4096, 1e-6, 1e-6, 10)
+    values = start.starting_values_given(scene, obs, opts)
+    s = start.build(obs, seen, obs.noise.estimated(obs.data, obs.valid), scene, opts, values,
+                    start.focal(values["fov"], img.shape[1]), (0.0, 0.0))  # fmt: skip
+    p = {n: jnp.asarray(float(v)) for n, v in zip(s.prob.names, s.data.sel.value)}
+    with jax.enable_x64(True):
+        m = objective.model_image(p, s.data.scene, s.data.grid, s.data.otf, s.prob)
+    return np.asarray(m).reshape(img.shape[0] // block, -1), s.prob
+
+
+def test_bins_under_a_psf_are_the_means_of_their_blurred_pixels():
+    # Bins of 2 px under a 1.2 px PSF are rendered as 2 x 2 sub-bins, blurred there:
+    # the model is the mean of the pixels' model, not the blur of the bins' means.
+    img = 0.01 + _ring(96, 128)
+    bins, prob = _model_of_bins(img, jl.GaussianPSF(1.2), 2)
+    pixels, _ = _model_of_bins(img, jl.GaussianPSF(1.2), 1)
+    assert prob.sub == 2
+    means = pixels.reshape(48, 2, 64, 2).mean(axis=(1, 3))
+    assert np.max(np.abs(bins - means)) < 1e-4 * np.max(means)
+    # A PSF image of the same Gaussian (pixels) gives the same bins.
+    y, x = np.mgrid[-7:8, -7:8]
+    kernel = np.exp(-0.5 * (x * x + y * y) / 1.2**2)
+    as_image, _ = _model_of_bins(img, jl.ImagePSF(kernel), 2)
+    assert np.max(np.abs(as_image - bins)) < 1e-3 * np.max(means)

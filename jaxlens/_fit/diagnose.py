@@ -223,9 +223,11 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
                      "errors measure the misfit, not a noise; give the noise level "
                      "(noise=, --noise SIGMA) for errors that do")  # fmt: skip
     else:
-        causes = likely_causes(obs, seen.grey, model_img, resid_img, pix.block,
-                               obs.psf is not None, top)  # fmt: skip
         goodness = noise.excess(rss, dof)
+        causes = []
+        if goodness > GOODNESS_SIGMAS:  # the causes are searched for only where needed
+            causes = likely_causes(obs, seen.grey, model_img, resid_img, pix.block,
+                                   obs.psf is not None, top)  # fmt: skip
         note = goodness_note(noise, rss, dof, causes)
         if note:
             notes.append(note)

@@ -40,6 +40,9 @@ class Problem(eqx.Module):
     pad: int = eqx.field(static=True)
     psf: str | None = eqx.field(static=True)  # None, "gaussian" or "image"
     knots: int = eqx.field(static=True)
+    # With a PSF, each bin is rendered as `sub` x `sub` sub-bins, blurred at that
+    # resolution and averaged (`psf_sub_bins`); 1 without one.
+    sub: int = eqx.field(static=True)
     # Yaw and pitch held at zero and no roll: the model's view is concretely unrotated
     # (a plan without the view rotation and its tangents, the edge's offsets exact in
     # the image plane), whose Jacobian compiles sooner.
@@ -82,9 +85,10 @@ def physical(u, sel: Select, prob: Problem):
 
 def model_image(p, scene, grid, otf, prob: Problem):
     """Grey model of the compared bins (before clipping), data units, one value a bin:
-    the fine bins then the coarse blocks (one rule of order k for both), or with a PSF the regular
-    grid of bins, rendered on a margin, blurred and cropped (row-major); `p` the
-    physical value of every parameter (`_physical`)."""
+    the fine bins then the coarse blocks (one rule of order k for both), or with a PSF
+    the regular grid of bins, each rendered as `prob.sub` x `prob.sub` sub-bins on a
+    margin, blurred, cropped and averaged (row-major); `p` the physical value of every
+    parameter (`_physical`)."""
     # Concrete zeros, which the plan reads as no rotation: the model's camera is at the
     # origin of the sky's frame (`fit` places it there), and with `prob.centred` its
     # view is unrotated.
@@ -118,12 +122,15 @@ def model_image(p, scene, grid, otf, prob: Problem):
         x0, y0, side = grid
         return render(x0, y0, side)
     x0, y0 = grid
-    img = render(x0, y0, jnp.asarray(float(prob.block))).reshape(x0.shape)
+    side = prob.block / prob.sub
+    img = render(x0, y0, jnp.asarray(side)).reshape(x0.shape)
     if prob.psf == "gaussian":
         # The width is positive by its transform: the OTF without the run-time check,
         # whose host callback would keep the program out of the command line's cache.
-        otf = _psf.gaussian_otf_unchecked(img.shape, p["psf_sigma"] / prob.block)
-    return _psf.convolve_psf(img, otf, pad=prob.pad).ravel()
+        otf = _psf.gaussian_otf_unchecked(img.shape, p["psf_sigma"] / side)
+    img = _psf.convolve_psf(img, otf, pad=prob.pad * prob.sub)
+    h, w = (n // prob.sub for n in img.shape)
+    return img.reshape(h, prob.sub, w, prob.sub).mean(axis=(1, 3)).ravel()
 
 
 class Data(eqx.Module):
