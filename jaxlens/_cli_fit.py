@@ -146,6 +146,14 @@ def register(sub):
         "(as stored), auto (the default: the file's tag, and for an untagged file both "
         "decodings tried, the one whose residuals pass the noise test kept)",
     )
+    p.add_argument(
+        "--pixels",
+        choices=("auto", "area", "point"),
+        default="auto",
+        help="how the pixels sampled the light: area (averaged over each pixel, as a "
+        "camera's), point (the light at each pixel's centre, as jaxlens render with one "
+        "ray a pixel), auto (the default: what a file jaxlens wrote records, else area)",
+    )
     p.add_argument("--mask", default=None, help="mask image: pixels > 0.5 are left out")
     p.add_argument(
         "--fix",
@@ -229,7 +237,8 @@ def run(args):
         cli.status(f"fitting {image}{which} (compiling on first use)")
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
-                            mask=args.mask, init=init or None, transfer=args.transfer)  # fmt: skip
+                            mask=args.mask, init=init or None, transfer=args.transfer,
+                            pixels=args.pixels)  # fmt: skip
         except (ValueError, OSError) as e:
             if not several:
                 raise

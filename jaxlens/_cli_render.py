@@ -234,7 +234,9 @@ def run(args):
     else:
         img = jl.render(scene)
     cli.status(f"writing {out}")
-    path = _io.write_image(out, img, exposure=scene.exposure)
+    # One ray a pixel samples it at its centre; more average it over its area.
+    sampling = "point" if scene.camera.supersample == 1 else "area"
+    path = _io.write_image(out, img, exposure=scene.exposure, sampling=sampling)
     if args.distributed:
         stage.remove()
     c = v["camera"]

@@ -248,4 +248,5 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
         converged=bool(converged), degenerate=degenerate, message="; ".join(notes),
         seconds=time.perf_counter() - t_start, transfer=obs.transfer,
         transfer_reason=obs.transfer_reason, goodness=float(goodness), noise_trend=trend,
+        pixels=obs.pixels, pixels_reason=obs.pixels_reason,
     )  # fmt: skip

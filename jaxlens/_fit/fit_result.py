@@ -51,6 +51,8 @@ class Fit:
       for an array. `transfer_reason`: why that decoding ("tagged sRGB", "untagged:
       both decodings fitted, linear passed the residual test", ...; "" when none was
       given).
+    - `pixels`: how the fit took the image's pixels to sample the light, `"area"` or
+      `"point"` (`observe`'s `pixels`); `pixels_reason`: why.
     - `goodness`: how far the residuals exceed the noise model, in standard deviations
       of their sum of squares (its own scatter and the estimated noise level's
       uncertainty: `AbstractNoise.excess`); above 5 the model does not describe the
@@ -97,6 +99,8 @@ class Fit:
     transfer_reason: str = ""
     goodness: float = math.nan
     noise_trend: float = math.nan
+    pixels: str = "area"
+    pixels_reason: str = ""
 
     @property
     def fits_noise(self) -> bool:
@@ -160,7 +164,8 @@ class Fit:
             result=self.result_name, num_steps=self.num_steps,
             variance_inflation=self.variance_inflation, seconds=self.seconds,
             transfer=self.transfer, transfer_reason=self.transfer_reason,
-            goodness=self.goodness, noise_trend=self.noise_trend,
+            goodness=self.goodness, noise_trend=self.noise_trend, pixels=self.pixels,
+            pixels_reason=self.pixels_reason,
         )  # fmt: skip
         return out
 
@@ -197,6 +202,8 @@ class Fit:
             how = "decoded from sRGB to linear" if self.transfer == "srgb" else "as stored"
             why = f"; {self.transfer_reason}" if self.transfer_reason else ""
             lines.append(f"transfer     = {self.transfer} ({how}{why})")
+        if self.pixels != "area":
+            lines.append(f"pixels       = {self.pixels} ({self.pixels_reason})")
         if self.message:
             lines.append(self.message)
         return "\n".join(lines)

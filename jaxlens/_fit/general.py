@@ -41,6 +41,7 @@ def fit(
     *,
     free=DEFAULT_FREE,
     transfer: str = "auto",
+    pixels: str = "auto",
     psf=None,
     noise="gaussian",
     gain: float | None = None,
@@ -78,6 +79,9 @@ def fit(
       and the one whose residuals fit the noise is kept, `Fit.transfer_reason` saying
       why, or the result flagged naming `transfer=`), `"srgb"` or `"linear"`
       (`observe`).
+    - `pixels`: `"area"` (pixels average the light, as a camera's), `"point"` (the
+      light at each pixel's centre, as a render with one ray a pixel) or `"auto"` (a
+      file jaxlens wrote says which, else area) (`observe`).
     - `free`: names of the parameters to fit: `distance`, `fov`, `yaw`, `pitch`,
       `source_lon`, `source_lat`, `sigma`, `brightness`, `floor`, `psf_sigma`,
       `ring_flux` (the thin rings' flux factor, with a prior N(1, 1), for images of
@@ -111,7 +115,8 @@ def fit(
                 "jaxlens.render_array) instead", scene, image, init)  # fmt: skip
     t_start = time.perf_counter()
     free = _checked_free(scene, free, psf)
-    obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain)
+    obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain,
+                  pixels=pixels)  # fmt: skip
     opts = _options(obs, free, init, block=block, max_pixels=max_pixels,
                     supersample=supersample, knots=knots, rtol=rtol,
                     atol=1e-6 if atol is None else atol, max_steps=max_steps)  # fmt: skip

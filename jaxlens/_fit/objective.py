@@ -13,6 +13,7 @@ from .._compile import program
 from .._util import to_device
 from .model import chunk_layout
 from .noise import Gaussian, clipped_slope
+from .observation import BOX_VARIANCE
 from .params import apply, in_scene, parameter
 from .solve import dense_least_squares, newton_decrement
 from .table import escape_table
@@ -43,6 +44,10 @@ class Problem(eqx.Module):
     # With a PSF, each bin is rendered as `sub` x `sub` sub-bins, blurred at that
     # resolution and averaged (`psf_sub_bins`); 1 without one.
     sub: int = eqx.field(static=True)
+    # The image's pixels are point samples (`Observation.pixels`): without a PSF each
+    # is rendered by one node at its centre; a Gaussian PSF is narrowed by the
+    # pixel's box (`BOX_VARIANCE`), which the model's area averages add.
+    point: bool = eqx.field(static=True)
     # Yaw and pitch held at zero and no roll: the model's view is concretely unrotated
     # (a plan without the view rotation and its tangents, the edge's offsets exact in
     # the image plane), whose Jacobian compiles sooner.
@@ -127,7 +132,10 @@ def model_image(p, scene, grid, otf, prob: Problem):
     if prob.psf == "gaussian":
         # The width is positive by its transform: the OTF without the run-time check,
         # whose host callback would keep the program out of the command line's cache.
-        otf = _psf.gaussian_otf_unchecked(img.shape, p["psf_sigma"] / side)
+        width = p["psf_sigma"]
+        if prob.point:
+            width = jnp.sqrt(jnp.maximum(width * width - BOX_VARIANCE, 1e-6))
+        otf = _psf.gaussian_otf_unchecked(img.shape, width / side)
     img = _psf.convolve_psf(img, otf, pad=prob.pad * prob.sub)
     h, w = (n // prob.sub for n in img.shape)
     return img.reshape(h, prob.sub, w, prob.sub).mean(axis=(1, 3)).ravel()

@@ -16,6 +16,7 @@ def fit_ring(
     image,
     *,
     transfer: str = "auto",
+    pixels: str = "auto",
     star_sigma: float | None = None,
     psf=None,
     noise="gaussian",
@@ -54,6 +55,8 @@ def fit_ring(
       tag; an untagged file is fitted under both and the decoding whose residuals
       pass the noise test kept). Float files, FITS and arrays are linear.
       `Fit.transfer` and `Fit.transfer_reason` say which and why.
+    - `pixels`: `"area"`, `"point"` or `"auto"`: how the pixels sampled the light
+      (`observe`; a default render samples each pixel at its centre).
     - `star_sigma`: the star's Gaussian width (radians) when known; fitted otherwise.
     - `psf`, `noise`, `gain`, `mask`: the point-spread function (a `GaussianPSF`, an
       `ImagePSF`, a Gaussian width in pixels or a PSF image), the noise model and the
@@ -77,7 +80,8 @@ def fit_ring(
                 star_sigma, init)  # fmt: skip
     if star_sigma is not None and not (0 < star_sigma < math.pi):
         raise ValueError(f"star_sigma={star_sigma!r} must be in (0, pi) radians")
-    obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain)
+    obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain,
+                  pixels=pixels)  # fmt: skip
     fit_sigma = star_sigma is None
     sky = GaussianStar(0.01 if fit_sigma else float(star_sigma), 1.0) + Uniform(0.0)
     scene = Scene(Camera(20.0, 1.0, 8, 8), sky)

@@ -187,6 +187,7 @@ def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, valu
     `centre` (pixels from the image centre, y up), under the estimated `noise`."""
     h, w = obs.shape
     prof = seen.prof
+    point = obs.pixels == "point"
     if obs.psf is None:
         # The shadow's edge where the image shows it (its radial profile's, which
         # `pixel_sets` takes itself, else the arcs' model's), else where the starting
@@ -198,7 +199,13 @@ def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, valu
         else:
             rho_sh = f_px * math.tan(shadow_angle_with(max(values["distance"], 1.6), np))
         level = float(noise.sigma) if hasattr(noise, "sigma") else prof.noise
-        pix = pixel_sets(seen.grey, prof, rho_sh, opts.max_pixels or 40_000, opts.block,
+        block = opts.block
+        if point:  # point samples are compared one by one, each its own centre's
+            if block not in (None, 1):
+                raise ValueError(f"block={block} averages pixels that are point samples "
+                                 "(pixels='point'): leave it out or give 1")  # fmt: skip
+            block = 1
+        pix = pixel_sets(seen.grey, prof, rho_sh, opts.max_pixels or 40_000, block,
                          valid=obs.valid, centre=centre,
                          structure=prof.floor + 3.0 * level)  # fmt: skip
     else:
@@ -217,6 +224,8 @@ def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, valu
     k = (int(opts.supersample) if opts.supersample is not None
          else samples_for(_unblurred_width(prof.ring_width, psf_width(obs.psf)), b / sub,
                           3 if obs.psf is not None and sub == 1 else 2))  # fmt: skip
+    if point and obs.psf is None:
+        k = 1  # the node at the pixel's centre
     cam0 = scene.camera
     yaw, pitch, roll = (np.asarray(v) for v in (cam0.yaw, cam0.pitch, cam0.roll))
     cam = Camera(values["distance"], values["fov"], w, h, yaw=yaw, pitch=pitch, roll=roll,
@@ -246,7 +255,7 @@ def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, valu
         or any(given.get(n, 0.0) != 0.0 for n in ("yaw", "pitch"))
     )
     psf_kind = None if obs.psf is None else ("gaussian" if gaussian_psf(obs.psf) else "image")
-    prob = Problem(names, b, k, pad, psf_kind, int(opts.knots), sub, centred=not turned)
+    prob = Problem(names, b, k, pad, psf_kind, int(opts.knots), sub, point, centred=not turned)
     data = Data(model_scene, grid, otf, to_device(pix.data), to_device(pix.weight),
                 jax.tree.map(to_device, noise), sel)  # fmt: skip
     theta0 = np.asarray([parameter(n).transform.inverse(values[n]) for n in opts.free])
