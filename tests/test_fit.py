@@ -402,16 +402,19 @@ def test_model_gradient_matches_finite_differences():
     d, fov, sig, floor = 20.0, math.radians(60.0), math.radians(1.5), 0.1
 
     def img(p):
-        return ring_image(p[0], p[1], 64, 48, sigma=sig, brightness=0.8, floor=floor,
-                          supersample=4)  # fmt: skip
+        out = ring_image(p[0], p[1], 64, 48, sigma=sig, brightness=0.8, floor=floor,
+                         supersample=4)  # fmt: skip
+        return out, out
 
+    # One program gives the Jacobian and the image (the differences' values): one
+    # compile, not two.
+    jac_and_img = jax.jit(jax.jacfwd(img, has_aux=True))
     p = jnp.asarray([d, fov])
-    jac = np.asarray(jax.jit(jax.jacfwd(img))(p))
-    f = jax.jit(img)
+    jac = np.asarray(jac_and_img(p)[0])
     for i, h in enumerate((1e-4 * d, 1e-5)):
         e = np.zeros(2)
         e[i] = h
-        fd = (np.asarray(f(p + e)) - np.asarray(f(p - e))) / (2 * h)
+        fd = (np.asarray(jac_and_img(p + e)[1]) - np.asarray(jac_and_img(p - e)[1])) / (2 * h)
         # Central differences: truncation ~h^2 |f'''|, well below 1e-4 of the scale.
         np.testing.assert_allclose(jac[..., i], fd, atol=2e-4 * np.abs(fd).max())
 
@@ -627,7 +630,12 @@ def test_degenerate_when_only_a_faint_relativistic_ring_separates_d():
     only the relativistic ring separates them. Seen at ~3 standard errors, that is not
     enough (D off by 0.6-6 % over seeds at these settings): flagged, although D's
     relative error (2.5 %) is below the 10 % rule."""
-    fit = fit_ring(noisy(modelled(17.0, 80.0, 1.2, 0.0, k=6), 0.001, seed=2), supersample=K)
+    # Started at the truth (the recovery tests cover the start search): the optimum is the
+    # one the search's own start reaches (D 17.102 +- 0.43 both), in 3 steps, not 68 along
+    # the degenerate valley (7 s).
+    img = noisy(modelled(17.0, 80.0, 1.2, 0.0, k=6), 0.001, seed=2)
+    init = {"distance": 17.0, "fov_deg": 80.0, "sigma": math.radians(1.2)}
+    fit = fit_ring(img, init=init, supersample=K)
     assert fit.degenerate and "relativistic ring" in fit.message, fit.message
     assert fit.distance_err / fit.distance < 0.10
     assert np.isfinite([fit.distance, fit.fov, fit.sigma, fit.ring_flux]).all()
@@ -653,7 +661,8 @@ def test_a_stretched_ring_is_flagged_not_a_traceback():
 
     assert distance_from_radii(10.0, 0.0, W) is None
     img = np.repeat(noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=9), 2, axis=1)
-    fit = fit_ring(img[:, W // 2 : W // 2 + W], star_sigma=math.radians(1.5))
+    # The order given (the ring's width would choose 2): the ring fits' compiled programs.
+    fit = fit_ring(img[:, W // 2 : W // 2 + W], star_sigma=math.radians(1.5), supersample=K)
     assert not fit.valid and "does not describe the image" in fit.message, fit.summary()
 
 
