@@ -79,8 +79,9 @@ class ArcGuess(eqx.Module):
     - `noise`: per-pixel noise used (image units): the given one, or a robust
       estimate.
     - `score`: signal to noise of the ring feature, $\\sqrt{\\Delta\\chi^2}$ of the fit
-      against a flat image (noise alone gives 0-6); below ~10 the other fields mean
-      nothing. NaN geometry and 0 for a blank image.
+      against the same model without the arcs' light (its floor and shadow kept: a
+      shadow's edge alone is not a ring; noise alone gives 0-6); below ~10 the other
+      fields mean nothing. NaN geometry and 0 for a blank image.
     """
 
     x_c: float
@@ -98,6 +99,13 @@ class ArcGuess(eqx.Module):
     shadow_radius: float
     noise: float
     score: float
+
+    @property
+    def found(self) -> bool:
+        """Whether arcs stand out: a `score` above 10, and a peak above twice the noise
+        of a pixel (a ring beyond the frame leaves light at the shadow's edge that a
+        broad arc 0.3 noise sigmas bright explained at a score of 15)."""
+        return bool(self.score > 10.0 and self.amplitude > 2.0 * self.noise)
 
 
 # ----------------------------------------------------------------- pixel statistics
@@ -610,7 +618,7 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
     if flat1 - cost1 < 36.0 * tol1:
         # Below 6 sigma on the bins (noise alone gains chi^2 ~ 10 with these 9
         # parameters): nothing ring-like, and no full-resolution fit.
-        return _summary(p, shadow is not None, sigma * side, _score(p, every, flat_cost, sigma))
+        return _summary(p, shadow is not None, sigma * side, _score(p, every, 2, None, sigma))
 
     # Stage 2: full resolution where the ring's model is above 1e-4 of its peak or the
     # image is bright, widened by 3 pixels (bins), and on the shadow's edge; the other
@@ -653,7 +661,7 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
         p[:2] = 0.0
         d3 = _Data(xs, ys, d2.data, d2.weight)
         p, cost = _best_way_round(p, d3, every, k, (f, rot), lo, hi, 1e-2 * sigma**2)
-    score = math.sqrt(max(flat_cost - cost, 0.0)) / sigma
+    score = _score(p, every, k, None if rot is None else (float(focal), rot), sigma, cost)
     guess = _summary(p, shadow is not None, sigma * side, score)
     if rot is not None:
         xc, yc = _from_view(float(p[0]), float(p[1]), float(focal), rot)
@@ -661,10 +669,16 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
     return guess
 
 
-def _score(p, px: _Pixels, flat_cost: float, sigma: float) -> float:
-    """$\\sqrt{\\Delta\\chi^2}$ of the model `p` against a flat image, on the pixels
-    `px` (2 x 2 area samples), of noise `sigma`."""
-    return math.sqrt(max(flat_cost - _cost(p, px, 2), 0.0)) / sigma
+def _score(p, px: _Pixels, k: int, view, sigma: float, cost: float | None = None) -> float:
+    """$\\sqrt{\\Delta\\chi^2}$ of the model `p` against the same model without the
+    arcs' light (amplitude 0: the floor and the shadow's edge alone, which a camera
+    whose ring lies outside the frame also shows), on the pixels `px` (k x k area
+    samples, seen through `view`), of noise `sigma`; `cost`: `p`'s own there, when
+    known."""
+    dark = np.asarray(p, float).copy()
+    dark[7] = 0.0
+    cost = _cost(p, px, k, view) if cost is None else cost
+    return math.sqrt(max(_cost(dark, px, k, view) - cost, 0.0)) / sigma
 
 
 # Below this offset (pixels) the ring turned round is the same ring (its centre moved by

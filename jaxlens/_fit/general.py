@@ -179,7 +179,7 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
             # A hole off the image centre: its image as a camera turned toward it sees
             # the arcs (the oblique projection moves the ring's centre).
             arcs = find_arcs(obs.data, noise=seen.level[0], focal=st.focal(values["fov"], w))
-            seen = dataclasses.replace(seen, arcs=arcs, found=arcs.score > 10.0)
+            seen = dataclasses.replace(seen, arcs=arcs, found=arcs.found)
         centre = (seen.arcs.x_c, seen.arcs.y_c) if seen.found else (0.0, 0.0)
         s = st.build(obs, seen, noise, scene, opts, values, st.focal(values["fov"], w), centre)
         settings = dict(rtol=opts.rtol, atol=opts.atol, max_steps=opts.max_steps)

@@ -78,7 +78,7 @@ def look(obs: Observation) -> Look:
     level = noise_estimate(obs.data)
     prof = starts.radial_profile(grey, noise=level[0])
     arcs = find_arcs(obs.data, noise=level[0])
-    found = arcs.score > 10.0
+    found = arcs.found
     arc_like = found and arcs.offset > max(1.0, 0.5 * arcs.ring_width)
     if arc_like:
         # Arcs, not a ring: the radial profile about the image centre mixes the two
@@ -86,11 +86,15 @@ def look(obs: Observation) -> Look:
         r, wr = arcs.ring_radius, arcs.ring_width
         prof = eqx.tree_at(lambda q: (q.ring_radius, q.ring_width, q.inner_half, q.outer_half),
                            prof, (r, wr, r - 1.1774 * wr, r + 1.1774 * wr))  # fmt: skip
-    if not prof.peak > 8.0 * prof.peak_noise and arcs.score <= 10.0:
+    if not prof.peak > 8.0 * prof.peak_noise and not found:
+        # A shadow with no ring in view: a camera whose ring lies beyond the frame.
+        where = (f"; the shadow's edge is seen ({prof.shadow_radius:.3g} px in radius): the "
+                 "ring may lie outside the frame, which a wider field of view would show"
+                 if math.isfinite(prof.shadow_radius) else "")  # fmt: skip
         raise ValueError(
             f"no ring or arcs found: the radial profile about the image centre peaks "
             f"{prof.peak:.3g} above its floor, within 8 times its noise "
-            f"({prof.peak_noise:.3g}), and no arcs stand out of the noise"
+            f"({prof.peak_noise:.3g}), and no arcs stand out of the noise{where}"
         )
     if prof.ring_radius < SMALLEST_RING_PX:
         h, w = obs.shape
