@@ -6,8 +6,9 @@ The files come from `tests/user_images.py`, not from the library's writer: a rin
 pixels, Gaussian noise 0.01 on a peak of 0.8), stored as linear values in an untagged
 16-bit PNG, as numpy and camera pipelines write them. 96 x 72 is tests/test_fit.py's
 size, so these fits share its compiled programs (the suite's XLA cache). The blurred
-ring is 160 x 120: at 96 x 72 the same blur of 2 px, untold, was fitted as a valid ring
-far from the truth (measured: D 79.7 +- 0.28, FOV 29.85 deg, not flagged).
+ring is 160 x 120, where an untold blur of 2 px also fails the residuals' test; at
+96 x 72 a blur the fitted values take up passes it (D 79.7 +- 0.28, FOV 29.85 deg for
+a 2 px blur) and only the blur's own score test flags it.
 
 Tolerances. 1 % in D and FOV is the fit benchmark's goal; here the reported standard
 errors are about 0.2 % and 0.1 % (D +- 0.04, FOV +- 0.05 deg), so a right fit meets it
@@ -153,3 +154,36 @@ def test_tiny_ring_is_refused_or_flagged(folder):
         assert str(e), "a refusal must say why"
         return
     assert not fit.valid and fit.message, _said(fit)
+
+
+def test_a_ring_cut_by_the_frame_is_right(folder):
+    # FOV 45 deg on 96 x 72: the ring (20.2 deg from the hole) is beyond the frame's
+    # half-height (17.3 deg), seen on the sides only.
+    assert ui.half_frame_height_deg(W, H, 45.0) < 20.0 < 22.5
+    path = _png16(folder, "cut16.png", ui.ring(W, H, fov_deg=45.0, noise=0.01, seed=5))
+    fit = jl.fit_ring(path, star_sigma=STAR, transfer="linear")
+    assert fit.valid and abs(fit.distance / D - 1) < 0.01, _said(fit)
+    assert abs(fit.fov_deg / 45.0 - 1) < 0.01, _said(fit)
+    assert abs(fit.distance - D) < 3.0 * fit.distance_err, _said(fit)
+
+
+def test_a_ring_outside_the_frame_is_refused_not_fitted(folder):
+    # FOV 30 deg: the ring lies beyond the frame's corners; the shadow's edge alone
+    # once passed for arcs and was fitted at D = 8.3 +- 0.37, FOV 66 deg, valid.
+    path = _png16(folder, "outside16.png", ui.ring(W, H, fov_deg=30.0, noise=0.01, seed=6))
+    with pytest.raises(ValueError, match="outside the frame"):
+        jl.fit_ring(path, star_sigma=STAR, transfer="linear")
+
+
+def test_a_blur_the_fit_takes_up_is_flagged_by_its_score(folder):
+    # Blurred by 1 px, untold: fitted as a sharp ring at D = 35, FOV 45 deg, whose
+    # residuals are the noise's (goodness 0.06); the blur's direction, with the fitted
+    # values' share taken out, stands 25 standard errors out.
+    path = _png16(folder, "blur1.png", ui.ring(W, H, blur_px=1.0, noise=0.01, seed=3))
+    fit = jl.fit_ring(path, star_sigma=STAR, transfer="linear")
+    assert not fit.valid and fit.blur_z > 5.0, _said(fit)
+    assert "more blurred than the model" in fit.message and "--psf-sigma-px" in fit.message
+    # The same image unblurred passes the test.
+    sharp = _png16(folder, "sharp1.png", ui.ring(W, H, noise=0.01, seed=3))
+    fit = jl.fit_ring(sharp, star_sigma=STAR, transfer="linear")
+    assert fit.valid and abs(fit.blur_z) < 5.0, _said(fit)

@@ -132,6 +132,62 @@ def blur_excess(model_img, resid_img, block: int) -> float:
     return block * best
 
 
+def blur_mismatch(sol: Solution, pix, data, noise: AbstractNoise, scale2: float):
+    """A score test of the model's blur: `(v, z)`, the extra Gaussian blur variance
+    (pixels squared; negative: the image is sharper than the model) that one
+    Gauss-Newton step would add to the fitted model, and its size in standard errors,
+    with the free parameters' own columns projected out (a blur they take up is not
+    counted). About N(0, 1) where the model describes the image; `(nan, nan)` where no
+    compared bin has full-resolution neighbours. The blur's direction is
+    $\\partial m / \\partial v = \\nabla^2 m / 2$ on the bins of full resolution whose
+    neighbours are too; each bin's residual slope is the noise model's own."""
+    n = sol.model.size
+    model = np.asarray(sol.model, np.float64)
+    fine = pix.paint((pix.side == pix.block).astype(float), fill=0.0) > 0
+    fine = scipy.ndimage.minimum_filter(fine.astype(np.uint8), 3, mode="constant") > 0
+    img = pix.paint(model)
+    lap = scipy.ndimage.laplace(np.where(np.isfinite(img), img, 0.0), mode="nearest")
+    lap = np.where(fine, 0.5 * lap / pix.block**2, 0.0)
+    h, w = pix.shape
+    r0, c0 = (h - (h // pix.block) * pix.block) // 2, (w - (w // pix.block) * pix.block) // 2
+    rr = np.clip((pix.rows - r0) // pix.block, 0, lap.shape[0] - 1)
+    cc = np.clip((pix.cols - c0) // pix.block, 0, lap.shape[1] - 1)
+    c = np.where((pix.side == pix.block) & (pix.count > 0), lap[rr, cc], 0.0)
+    if not np.any(c):
+        return math.nan, math.nan
+    step = 1e-6 * max(float(np.max(np.abs(model))), 1e-12)
+    d, wt = (np.asarray(v) for v in (data.data, data.weight))
+    r_up = np.asarray(noise.residuals(model + step, d, wt)).ravel()
+    slope = (r_up - np.asarray(noise.residuals(model, d, wt)).ravel()) / step
+    col = slope * c
+    jac = np.asarray(sol.jac)[:n]
+    coef = np.linalg.lstsq(jac, col, rcond=None)[0]
+    perp = col - jac @ coef
+    norm2 = float(perp @ perp)
+    if not norm2 > 0.0:
+        return math.nan, math.nan
+    v = -float(perp @ np.asarray(sol.r)[:n]) / norm2
+    return v, v / math.sqrt(scale2 / norm2)
+
+
+def blur_note(v: float, z: float, psf_given: bool) -> str:
+    """The note when the blur's score test (`blur_mismatch`) is beyond
+    `GOODNESS_SIGMAS` standard errors; "" else."""
+    if not abs(z) > GOODNESS_SIGMAS:
+        return ""
+    width = math.sqrt(abs(v))
+    if v > 0:
+        what = "a wider PSF" if psf_given else "a PSF"
+        return (f"the image is more blurred than the model, as by a further Gaussian of "
+                f"{width:.2g} px ({z:.3g} standard errors; the fitted values take up part "
+                f"of it): give {what} (psf=, --psf-sigma-px) or fit its width (free "
+                "psf_sigma, --fit-psf)")  # fmt: skip
+    return (f"the image is sharper than the model, by a Gaussian of {width:.2g} px "
+            f"({-z:.3g} standard errors): a PSF narrower than given, or pixels that are "
+            "point samples (one ray a pixel; pixels='point', --pixels point); give the "
+            "PSF the image has or fit its width (free psf_sigma, --fit-psf)")  # fmt: skip
+
+
 def likely_causes(obs, grey, model_img, resid_img, block: int, psf_given: bool,
                   hi: float) -> list[str]:  # fmt: skip
     """What most likely makes residuals exceed the noise, each as advice: pixels stored
@@ -215,7 +271,7 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     notes += more + _nuisance_notes(free, sol.phys, err, obs.psf is not None, math.isfinite(top))
     model_img = pix.paint(sol.model)
     resid_img = pix.paint(np.where(pix.count > 0, pix.data - sol.model, np.nan))
-    goodness = math.nan
+    goodness = blur_v = blur_z = math.nan
     lo, hi = (float(getattr(noise, n, b)) for n, b in (("lo", -math.inf), ("hi", math.inf)))
     trend = noise_trend(sol.r[: sol.r.size - prior], sol.model, lo, hi, seen.level[0])
     if not noise_seen:
@@ -230,6 +286,12 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
                                    obs.psf is not None, top)  # fmt: skip
         note = goodness_note(noise, rss, dof, causes)
         if note:
+            notes.append(note)
+        # A blur the fitted values take up passes the residuals' test; its own
+        # direction does not.
+        blur_v, blur_z = blur_mismatch(sol, pix, setup.data, noise, scale2)
+        note = blur_note(blur_v, blur_z, obs.psf is not None)
+        if note and not any("smoother than the model" in c for c in causes):
             notes.append(note)
     converged = ok and finite and bool(np.all(np.isfinite(err))) and not at_bound
     kept = {**values, **sol.phys}
@@ -248,5 +310,6 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
         converged=bool(converged), degenerate=degenerate, message="; ".join(notes),
         seconds=time.perf_counter() - t_start, transfer=obs.transfer,
         transfer_reason=obs.transfer_reason, goodness=float(goodness), noise_trend=trend,
-        pixels=obs.pixels, pixels_reason=obs.pixels_reason,
+        pixels=obs.pixels, pixels_reason=obs.pixels_reason, blur_variance=float(blur_v),
+        blur_z=float(blur_z),
     )  # fmt: skip

@@ -53,6 +53,14 @@ class Fit:
       given).
     - `pixels`: how the fit took the image's pixels to sample the light, `"area"` or
       `"point"` (`observe`'s `pixels`); `pixels_reason`: why.
+    - `blur_variance`, `blur_z`: the score test of the model's blur: the extra
+      Gaussian blur variance (pixels squared; negative: the image is sharper than the
+      model) one step of the fit would add, with the free parameters' own share taken
+      out, and its size in standard errors (about N(0, 1) where the model describes
+      the image). Beyond 5 the fit is flagged naming the PSF: a blur that the fitted
+      values take up (a ring blurred by 1 px without its PSF, fitted at D = 35 for 20)
+      leaves residuals that pass `goodness`, but not this test. NaN where the image
+      shows no pixel noise.
     - `goodness`: how far the residuals exceed the noise model, in standard deviations
       of their sum of squares (its own scatter and the estimated noise level's
       uncertainty: `AbstractNoise.excess`); above 5 the model does not describe the
@@ -101,6 +109,8 @@ class Fit:
     noise_trend: float = math.nan
     pixels: str = "area"
     pixels_reason: str = ""
+    blur_variance: float = math.nan
+    blur_z: float = math.nan
 
     @property
     def fits_noise(self) -> bool:
@@ -165,7 +175,8 @@ class Fit:
             variance_inflation=self.variance_inflation, seconds=self.seconds,
             transfer=self.transfer, transfer_reason=self.transfer_reason,
             goodness=self.goodness, noise_trend=self.noise_trend, pixels=self.pixels,
-            pixels_reason=self.pixels_reason,
+            pixels_reason=self.pixels_reason, blur_variance=self.blur_variance,
+            blur_z=self.blur_z,
         )  # fmt: skip
         return out
 
