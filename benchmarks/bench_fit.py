@@ -590,6 +590,12 @@ def ring_lines(rows, note=None):
     return lines
 
 
+def _valid(fit) -> bool:
+    """Whether a fit's JSON reports a measurement (`Fit.valid`; rows from before it was
+    recorded: converged and not degenerate)."""
+    return bool(fit.get("valid", fit["converged"] and not fit["degenerate"]))
+
+
 def _angle_deg(a, b):
     """Angle between two unit vectors (deg), atan2(|a x b|, a . b)."""
     return math.degrees(math.atan2(np.linalg.norm(np.cross(a, b)), float(np.dot(a, b))))
@@ -652,6 +658,8 @@ def arc_lines(rows, note=None):
         )  # fmt: skip
         done.append(e)
         flag = " (degenerate)" if f["degenerate"] else ("" if f["converged"] else " (not conv.)")
+        if not flag and not f.get("valid", True):
+            flag = " (flagged)"
         p = e["pulls"]
         lines.append(
             head + f" {f['distance']:.4f} +- {f['distance_err']:.2g} | {e['de']:+.2e} | "
@@ -660,9 +668,11 @@ def arc_lines(rows, note=None):
             f"{p[2]:+.2f} | {f['source_lat_deg']:+.4f} +- {f['source_lat_deg_err']:.2g} | "
             f"{p[3]:+.2f} | {e['pos']:.2g} | {f['num_steps']}{flag} | {r['wall']:.1f} |"
         )
-    good = [e for e in done if e["fit"]["converged"] and not e["fit"]["degenerate"]]
-    lines += ["", f"{len(done)} of {len(rows)} fits returned a result; {len(good)} converged "
-              "and were not flagged degenerate."]  # fmt: skip
+    # A fit reports a measurement only when valid (converged, not degenerate, no check
+    # failed): the pulls are those of the valid fits, and of every converged one below.
+    good = [e for e in done if _valid(e["fit"])]
+    lines += ["", f"{len(done)} of {len(rows)} fits returned a result; {len(good)} valid "
+              "(converged, not degenerate, no check failed)."]  # fmt: skip
     if good:
         worst_d = max(abs(e["de"]) for e in good)
         worst_f = max(abs(e["fe"]) for e in good)
@@ -687,6 +697,13 @@ def arc_lines(rows, note=None):
             f"the reported errors are honest and the two renderers agree); |pull| <= 2 in "
             f"{np.mean(np.abs(fin) <= 2) * 100:.0f} % of them.",
         ]
+        conv = [e for e in done if e["fit"]["converged"] and not e["fit"]["degenerate"]]
+        every = np.array([e["pulls"] for e in conv])
+        every = every[np.isfinite(every)]
+        if len(conv) > len(good):
+            lines.append(f"- Every converged, non-degenerate fit, the flagged ones too "
+                         f"({len(conv)}): pulls rms {np.sqrt(np.mean(every**2)):.2f} over "
+                         f"{every.size}.")  # fmt: skip
     for e in done:
         if e in good:
             continue
