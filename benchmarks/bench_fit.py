@@ -1,6 +1,7 @@
 """Benchmark: fitting D and FOV to Einstein rings made by an independent renderer.
 
-    .venv/bin/python benchmarks/bench_fit.py [--only rings|arcs|files] [--cases N] [--keep DIR]
+    .venv/bin/python benchmarks/bench_fit.py [--only rings|arcs|files|speed] [--cases N]
+        [--keep DIR]
     .venv/bin/python benchmarks/bench_fit.py --render-only [--cases N] [--keep DIR]
 
 Writes benchmarks/results/fit.md and fit.json. Each image is rendered here by a
@@ -11,7 +12,7 @@ convention). Each fit is one fresh `jaxlens fit IMAGE --json` process with the
 persistent compile cache switched off, so its wall time includes starting Python,
 importing JAX and compiling.
 
-Three sections, one report:
+Four sections, one report:
 
 - **Rings** (`CASES`): a Gaussian star exactly behind the hole. Gaussian noise is added,
   the image clipped to [0, 1] and stored as an 8- or 16-bit grey PNG (linear values, no
@@ -41,7 +42,10 @@ Three sections, one report:
   fit used and why, and counts the fits that are valid but off by more than 1 %: the
   silent failures.
 
-`--only rings|arcs|files` runs one section; the other sections' rows are then taken
+- **Speed**: the CPU time of a fit of a 320 x 240 ring, in a cold `jaxlens fit` process
+  (compile cache off) and warm in one process, against the goals (5 and 1 CPU-s).
+
+`--only rings|arcs|files|speed` runs one section; the other sections' rows are then taken
 from the existing fit.json (where it has them: rows without a "section" key are rings) and
 reported again under a note that they were not run this time, so a one-section run
 leaves a complete report. `--cases N` runs the first N cases of each section run.
@@ -444,6 +448,93 @@ def run_files(n, folder):
     return rows
 
 
+# The speed section's ring: (D, FOV deg, width, height, sigma deg (given), brightness,
+# floor, noise), a 16-bit PNG, three noise draws.
+SPEED_SCENE = (20.0, 60.0, 320, 240, 1.0, 0.8, 0.05, 0.01)
+# Goals of the fit's speed (CPU seconds, every thread): a cold `jaxlens fit` process with
+# the compile cache off, and a fit of a same-size image in a process that fitted one.
+SPEED_GOALS = {"cold": 5.0, "warm": 1.0}
+
+_WARM = """
+import json, sys, time
+import jaxlens as jl
+out = []
+for path in sys.argv[2:]:
+    c0, w0 = time.process_time(), time.perf_counter()
+    fit = jl.fit_ring(path, star_sigma=float(sys.argv[1]))
+    out.append(dict(cpu=time.process_time() - c0, wall=time.perf_counter() - w0,
+                    distance=fit.distance, valid=fit.valid))
+print(json.dumps(out))
+"""
+
+
+def run_speed(n, folder):
+    """CPU time per fit of `SPEED_SCENE`: `n` (at most 3) cold `jaxlens fit` processes
+    (their own and their threads' CPU time, `RUSAGE_CHILDREN`), and one process that
+    fits the three images in turn (`time.process_time` of each fit: the first compiles,
+    the others are warm)."""
+    import resource
+
+    d, fov, w, h, sig, amp, floor, noise = SPEED_SCENE
+    clean = ring_image(d, math.radians(fov), w, h, math.radians(sig), amp, floor)
+    paths = []
+    for seed in range(3):
+        rng = np.random.default_rng([2029, seed])
+        paths.append(folder / f"speed{seed}.png")
+        write_png(paths[-1], clean + noise * rng.standard_normal(clean.shape), 16)
+    env = dict(os.environ, JAXLENS_CACHE_DIR="")
+    jaxlens = str(pathlib.Path(sys.executable).with_name("jaxlens"))
+    rows = []
+    for i in range(min(max(n, 1), 3)):
+        argv = [jaxlens, "fit", str(paths[i]), "--json", "--star-sigma-deg", repr(sig)]
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        done = subprocess.run(argv, capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        fit = json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else {}
+        rows.append(dict(section="speed", kind="cold", cpu=cpu, wall=wall,
+                         distance=fit.get("distance"), valid=fit.get("valid")))  # fmt: skip
+        print(f"speed: cold process {cpu:.1f} CPU-s, {wall:.1f} s wall", flush=True)
+    argv = [sys.executable, "-c", _WARM, repr(math.radians(sig)), *map(str, paths)]
+    done = subprocess.run(argv, capture_output=True, text=True, env=env)
+    fits = json.loads(done.stdout.strip().splitlines()[-1]) if done.returncode == 0 else []
+    for i, f in enumerate(fits):
+        rows.append(dict(section="speed", kind="first" if i == 0 else "warm", **f))
+        print(
+            f"speed: in-process fit {i}: {f['cpu']:.2f} CPU-s, {f['wall']:.2f} s wall", flush=True
+        )
+    return rows
+
+
+def speed_lines(rows, note=None):
+    d, fov, w, h, sig, *_ = SPEED_SCENE
+    lines = [
+        f"A ring of the first section's renderer (D = {d:g}, FOV {fov:g} deg, {w} x {h}, "
+        f"16-bit PNG, sigma {sig:g} deg given), three noise draws. 'cold': one fresh "
+        "`jaxlens fit IMAGE --json` process, compile cache off (Python, JAX's import and "
+        "every compile included); 'first' and 'warm': `jl.fit_ring` on the three images "
+        "in turn in one process (the first compiles, the others reuse its programs). CPU "
+        "seconds count every thread (user + system).",
+        "",
+    ]
+    if note:
+        lines += [note, ""]
+    lines += ["| run | CPU s | wall s | D | valid | goal (CPU s) |",
+              "|---|---:|---:|---:|---|---:|"]  # fmt: skip
+    for r in rows:
+        goal = SPEED_GOALS.get(r["kind"])
+        dist = "-" if r.get("distance") is None else f"{r['distance']:.4f}"
+        lines.append(f"| {r['kind']} | {r['cpu']:.2f} | {r['wall']:.2f} | {dist} | "
+                     f"{r.get('valid')} | {'-' if goal is None else f'{goal:g}'} |")  # fmt: skip
+    for kind, goal in SPEED_GOALS.items():
+        got = [r["cpu"] for r in rows if r["kind"] == kind]
+        if got:
+            lines.append(f"- {kind}: median **{np.median(got):.2f} CPU-s** (goal: {goal:g}).")
+    return lines
+
+
 def previous_rows(section):
     """The rows of `section` in the existing fit.json (rows without a section: rings)."""
     try:
@@ -455,8 +546,8 @@ def previous_rows(section):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", choices=("rings", "arcs", "files"),
-                    help="run one section (default all three)")  # fmt: skip
+    ap.add_argument("--only", choices=("rings", "arcs", "files", "speed"),
+                    help="run one section (default all four)")  # fmt: skip
     ap.add_argument("--cases", type=int, help="the first N cases of each section (default all)")
     ap.add_argument("--keep", type=pathlib.Path, help="keep the PNGs in this folder")
     ap.add_argument("--render-only", action="store_true",
@@ -472,7 +563,8 @@ def main():
     sections = {}
     n_files = len(FILE_SCENES) * len(FILE_CASES)
     for name, cases, run in (("rings", CASES, run_rings), ("arcs", ARC_CASES, run_arcs),
-                             ("files", range(n_files), run_files)):  # fmt: skip
+                             ("files", range(n_files), run_files),
+                             ("speed", range(3), run_speed)):  # fmt: skip
         if args.only in (None, name):
             sections[name] = (run(len(cases) if args.cases is None else args.cases, folder), True)
         else:
@@ -499,13 +591,17 @@ def write_report(sections, load):
     lines += arc_lines(arcs, None if arcs_ran else _not_run_note("arcs", arcs))
     lines += ["", "## Files as users have them: untagged PNGs, the library's own files", ""]
     lines += file_lines(files, None if files_ran else _not_run_note("files", files))
-    (RESULTS / "fit.json").write_text(json.dumps(rings + arcs + files, indent=1) + "\n")
+    speed, speed_ran = sections.get("speed", ([], False))
+    lines += ["", "## Speed: CPU time per fit", ""]
+    lines += speed_lines(speed, None if speed_ran else _not_run_note("speed", speed))
+    rows = rings + arcs + files + speed
+    (RESULTS / "fit.json").write_text(json.dumps(rows, indent=1) + "\n")
     (RESULTS / "fit.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / 'fit.md'}")
 
 
 def _not_run_note(section, rows):
-    other = "/".join(s for s in ("rings", "arcs", "files") if s != section)
+    other = "/".join(s for s in ("rings", "arcs", "files", "speed") if s != section)
     if rows:
         return (f"**Not run this time** (`--only {other}`): the {len(rows)} rows below are "
                 "those the previous `fit.json` held, from an earlier run (machine and "
