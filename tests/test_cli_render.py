@@ -66,8 +66,14 @@ def test_native_modules_load_where_a_signal_ends_the_command_at_once(tmp_path, c
         return render(*args, **kwargs)
 
     monkeypatch.setattr(jl, "render", spied)
-    args = ["render", "--sky", "star", "--size", "12x8", "-o", str(tmp_path / "x.png")]
-    assert run(args, capsys)[0] == 0
+    # Run from a background job, the suite inherits SIGINT ignored, which the command
+    # rightly keeps ignored: the test starts from Python's own handler.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        args = ["render", "--sky", "star", "--size", "12x8", "-o", str(tmp_path / "x.png")]
+        assert run(args, capsys)[0] == 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert seen[0].func is cli._exit_at_once and seen[1] is not seen[0]
     assert _io.native_import is contextlib.nullcontext  # outside the command: as it was
 
