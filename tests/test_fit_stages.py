@@ -258,3 +258,29 @@ def test_bins_under_a_psf_are_the_means_of_their_blurred_pixels():
     kernel = np.exp(-0.5 * (x * x + y * y) / 1.2**2)
     as_image, _ = _model_of_bins(img, jl.ImagePSF(kernel), 2)
     assert np.max(np.abs(as_image - bins)) < 1e-3 * np.max(means)
+
+
+def test_fit_keeps_the_observations_noise_model(monkeypatch):
+    # `fit(scene, observation)` once replaced an observation's noise by its own default
+    # (Gaussian): `fit_ring(..., noise="poisson")` fitted Gaussian residuals.
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def record(scene, obs, *rest):
+        seen.append(obs)
+        raise Seen  # the observation the stages get; no solve
+
+    monkeypatch.setattr(general, "_fit_observed", record)
+    img = _ring()
+    obs = jl.observe(img, noise=jl.Poisson(50.0), transfer="linear")
+    scene = jl.Scene(jl.Camera(20.0, 1.0, 8, 8), jl.GaussianStar(0.02) + jl.Uniform(0.0))
+    for call in (lambda: jl.fit_ring(img, star_sigma=0.02, noise="poisson", gain=200.0,
+                                     transfer="linear"),
+                 lambda: jl.fit(scene, obs),
+                 lambda: jl.fit(scene, obs, noise=0.01)):  # fmt: skip
+        with pytest.raises(Seen):
+            call()
+    assert [type(o.noise).__name__ for o in seen] == ["Poisson", "Poisson", "Gaussian"]
+    assert [float(o.noise.gain) for o in seen[:2]] == [200.0, 50.0]

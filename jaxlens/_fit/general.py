@@ -43,7 +43,7 @@ def fit(
     transfer: str = "auto",
     pixels: str = "auto",
     psf=None,
-    noise="gaussian",
+    noise=None,
     gain: float | None = None,
     mask=None,
     init: dict | None = None,
@@ -91,7 +91,8 @@ def fit(
     - `noise`: `"gaussian"` (sigma estimated from the image and the residuals), a
       number (Gaussian of that sigma, data units), `"poisson"` (counts = `gain` x
       value; `gain` estimated from the image when not given), or a noise model
-      (`jaxlens.Gaussian`, `jaxlens.Poisson`).
+      (`jaxlens.Gaussian`, `jaxlens.Poisson`). `None` (default): an `Observation`'s
+      own, else Gaussian.
     - `mask`: bool array (True = bad pixel) or a mask image path (> 0.5 = bad).
     - `init`: starting values by parameter name (physical units; `fov_deg` allowed).
     - `supersample`: the Gauss-Legendre order k (default: from the ring's width in the
