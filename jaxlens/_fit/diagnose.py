@@ -6,6 +6,7 @@ import dataclasses
 import math
 import time
 
+import jax
 import numpy as np
 import optimistix as optx
 import scipy.ndimage
@@ -157,8 +158,9 @@ def blur_mismatch(sol: Solution, pix, data, noise: AbstractNoise, scale2: float)
         return math.nan, math.nan
     step = 1e-6 * max(float(np.max(np.abs(model))), 1e-12)
     d, wt = (np.asarray(v) for v in (data.data, data.weight))
-    r_up = np.asarray(noise.residuals(model + step, d, wt)).ravel()
-    slope = (r_up - np.asarray(noise.residuals(model, d, wt)).ravel()) / step
+    with jax.enable_x64(True):  # the fit's own precision
+        r_up = np.asarray(noise.residuals(model + step, d, wt)).ravel()
+        slope = (r_up - np.asarray(noise.residuals(model, d, wt)).ravel()) / step
     col = slope * c
     jac = np.asarray(sol.jac)[:n]
     coef = np.linalg.lstsq(jac, col, rcond=None)[0]
@@ -189,19 +191,22 @@ def blur_note(v: float, z: float, psf_given: bool) -> str:
 
 
 def likely_causes(obs, grey, model_img, resid_img, block: int, psf_given: bool,
-                  hi: float) -> list[str]:  # fmt: skip
+                  hi: float, blur: str = "") -> list[str]:  # fmt: skip
     """What most likely makes residuals exceed the noise, each as advice: pixels stored
     at the format's range (saturated or cut at black), an image more blurred than the
     model (a PSF missing or too narrow), a file whose decoding was assumed. `hi`: the
-    image's upper clipping bound (`clipping_bounds`; inf where it is not clipped)."""
+    image's upper clipping bound (`clipping_bounds`; inf where it is not clipped);
+    `blur`: the blur's score-test note (`blur_note`), the blur's cause where given."""
     causes = []
     if math.isfinite(hi):
         share = float(np.mean(grey[obs.valid] >= hi))
         causes.append(f"{100 * share:.2g} % of the pixels are clipped at the format's "
                       "maximum (saturated): mask them (mask=, --mask) or use an unsaturated "
                       "exposure")  # fmt: skip
-    s = blur_excess(model_img, resid_img, block)
-    if math.isfinite(s):
+    s = math.nan if blur else blur_excess(model_img, resid_img, block)
+    if blur:
+        causes.append(blur)
+    elif math.isfinite(s):
         what = "a wider PSF" if psf_given else "a PSF"
         causes.append(f"the image is smoother than the model, as if blurred by a further "
                       f"{s:.2g} px: give {what} (psf=, --psf-sigma-px) or fit its width "
@@ -280,18 +285,16 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
                      "(noise=, --noise SIGMA) for errors that do")  # fmt: skip
     else:
         goodness = noise.excess(rss, dof)
-        causes = []
-        if goodness > GOODNESS_SIGMAS:  # the causes are searched for only where needed
-            causes = likely_causes(obs, seen.grey, model_img, resid_img, pix.block,
-                                   obs.psf is not None, top)  # fmt: skip
-        note = goodness_note(noise, rss, dof, causes)
-        if note:
-            notes.append(note)
         # A blur the fitted values take up passes the residuals' test; its own
         # direction does not.
         blur_v, blur_z = blur_mismatch(sol, pix, setup.data, noise, scale2)
-        note = blur_note(blur_v, blur_z, obs.psf is not None)
-        if note and not any("smoother than the model" in c for c in causes):
+        blur = blur_note(blur_v, blur_z, obs.psf is not None)
+        causes = []
+        if goodness > GOODNESS_SIGMAS:  # the causes are searched for only where needed
+            causes = likely_causes(obs, seen.grey, model_img, resid_img, pix.block,
+                                   obs.psf is not None, top, blur)  # fmt: skip
+        note = goodness_note(noise, rss, dof, causes) or blur
+        if note:
             notes.append(note)
     converged = ok and finite and bool(np.all(np.isfinite(err))) and not at_bound
     kept = {**values, **sol.phys}
