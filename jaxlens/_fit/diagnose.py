@@ -149,10 +149,8 @@ def blur_mismatch(sol: Solution, pix, data, noise: AbstractNoise, scale2: float)
     img = pix.paint(model)
     lap = scipy.ndimage.laplace(np.where(np.isfinite(img), img, 0.0), mode="nearest")
     lap = np.where(fine, 0.5 * lap / pix.block**2, 0.0)
-    h, w = pix.shape
-    r0, c0 = (h - (h // pix.block) * pix.block) // 2, (w - (w // pix.block) * pix.block) // 2
-    rr = np.clip((pix.rows - r0) // pix.block, 0, lap.shape[0] - 1)
-    cc = np.clip((pix.cols - c0) // pix.block, 0, lap.shape[1] - 1)
+    rr, cc = pix.bin_index()
+    rr, cc = np.clip(rr, 0, lap.shape[0] - 1), np.clip(cc, 0, lap.shape[1] - 1)
     c = np.where((pix.side == pix.block) & (pix.count > 0), lap[rr, cc], 0.0)
     if not np.any(c):
         return math.nan, math.nan

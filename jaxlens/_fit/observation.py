@@ -18,6 +18,7 @@ PIXELS = ("auto", "area", "point")
 # A pixel's area, sampled at its centre rather than averaged, is a blur less: the box's
 # variance, 1/12 px^2 along each axis.
 BOX_VARIANCE = 1.0 / 12.0
+_AREA = "pixels average the light over their area (the default)"
 _FITS_SUFFIXES = (".fits", ".fit", ".fts", ".fits.gz")
 
 
@@ -60,7 +61,7 @@ class Observation(eqx.Module):
     noise: AbstractNoise
     path: str | None
     pixels: str = "area"
-    pixels_reason: str = "pixels average the light over their area (the default)"
+    pixels_reason: str = _AREA
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -104,7 +105,7 @@ def _pixels(pixels, recorded: str, psf) -> tuple[str, str]:
     elif recorded in ("area", "point"):
         out = recorded, f"the file records jaxlens's {recorded} sampling"
     else:
-        out = "area", "pixels average the light over their area (the default)"
+        out = "area", _AREA
     if out[0] == "point" and psf is not None:
         # The model renders area averages and narrows a Gaussian PSF by the box.
         if not isinstance(psf, GaussianPSF):

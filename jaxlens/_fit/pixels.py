@@ -109,19 +109,26 @@ class _PixelSets(eqx.Module):
         """sqrt(count): a weighted residual has the noise of one original pixel."""
         return np.sqrt(self.count)
 
+    def bin_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column, in the image of `block` x `block` bins that `paint` makes, of
+        each compared bin's top-left bin."""
+        h, w = self.shape
+        hb, wb = h // self.block, w // self.block
+        r0, c0 = (h - hb * self.block) // 2, (w - wb * self.block) // 2
+        return (self.rows - r0) // self.block, (self.cols - c0) // self.block
+
     def paint(self, values, fill=np.nan) -> np.ndarray:
         """`values` (one per compared bin) as an image of `block` x `block` bins, each
         coarse block filling its bins; `fill` where no bin lies or none is valid."""
         h, w = self.shape
         hb, wb = h // self.block, w // self.block
-        r0, c0 = (h - hb * self.block) // 2, (w - wb * self.block) // 2
         out = np.full((hb, wb), fill, dtype=np.result_type(values, float))
         values = np.where(self.count > 0, values, fill)
+        rows, cols = self.bin_index()
         for side in np.unique(self.side):
             sel = self.side == side
             q = int(side) // self.block
-            rr = (self.rows[sel] - r0) // self.block
-            cc = (self.cols[sel] - c0) // self.block
+            rr, cc = rows[sel], cols[sel]
             for i in range(q):
                 for j in range(q):
                     out[np.minimum(rr + i, hb - 1), np.minimum(cc + j, wb - 1)] = values[sel]
