@@ -6,7 +6,9 @@ session.
 
 Under `pytest -n 2 --dist loadfile` (make test) the files are queued longest first,
 by their wall time in the last suite profile (`benchmarks/results/suite.json`, written
-by `benchmarks/suite_profile.py`; files it does not list come last, by test count).
+by `benchmarks/suite_profile.py`; files it does not list come first, by test count: a
+file newer than the profile may be long, and one that ends the run on one worker leaves
+the other idle, while a short one at the start costs nothing).
 xdist's own order (most tests first) put the notebooks and the fit files (few tests,
 the longest of the suite) last, and a worker with two or fewer pending tests takes the
 next file: one worker then ran them at the end while the other sat idle (2 minutes of
@@ -14,6 +16,7 @@ imbalance measured). Longest first, the run ends on short files. Only the order
 changes; every test runs as before.
 """
 
+import math
 import os
 
 import jax
@@ -86,7 +89,7 @@ def pytest_collection_modifyitems(config, items):
     walls = _recorded_walls(config.rootpath)
     # Longest first; stable, so every worker collects the same order and a file's
     # tests keep theirs.
-    order = sorted(files.items(), key=lambda kv: (-walls.get(kv[0], 0.0), -len(kv[1])))
+    order = sorted(files.items(), key=lambda kv: (-walls.get(kv[0], math.inf), -len(kv[1])))
     items[:] = [item for _, group in order for item in group]
 
 
