@@ -661,7 +661,7 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
     # image is bright, widened by 3 pixels (bins), and on the shadow's edge; the other
     # pixels as their mean.
     ring = np.zeros((h, w))
-    ring[rows, cols] = _ring_profile(p, every(1))[: rows.size]
+    ring[rows, cols] = _ring_profile(p, every(2))[: rows.size]
     near = _dilate((ring > 1e-4) | bright, 3) & ok
     del ring
     inside = np.zeros((h, w), bool)
@@ -753,11 +753,12 @@ def _best_way_round(p, d: _Pixels, far, every: _Pixels, k: int, view, lo, hi, si
 
 
 def _ring_profile(p, px: _Pixels):
-    """The ring's model (amplitude 1, floor 0, no shadow) at the centres of the pixels
-    `px` (packed with k = 1), flat (padding at the end)."""
+    """The ring's model (amplitude 1, floor 0, no shadow) on the pixels `px` (2 x 2
+    area samples each: the program that scores the first stage's fits), flat (padding
+    at the end)."""
     q = np.asarray(p, float).copy()
     q[7], q[8], q[9] = 1.0, 0.0, _NO_SHADOW
-    rows, _ = _evaluate(to_device(q), px, 1, _device_view(_NO_VIEW))
+    rows, _ = _evaluate(to_device(q), px, 2, _device_view(_NO_VIEW))
     return np.asarray(rows).ravel()
 
 
