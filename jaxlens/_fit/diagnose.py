@@ -75,14 +75,14 @@ def _separation_notes(free, phys, err, corr, cond, shadow_seen):
                          f"inflation up to {worst:.3g}): fix one of them")  # fmt: skip
         else:
             notes.append(f"the curvature is singular (condition {cond:.2g})")
-    vif_ring = math.nan
+    vif_ring, caveat = math.nan, ""
     if {"distance", "fov"} <= set(free) and np.all(np.isfinite(corr)):
         errs = {n: float(e) for n, e in zip(free, err)}
-        deg_r, note, vif_ring = ring_verdict(free, phys, errs, corr, shadow_seen)
+        deg_r, note, vif_ring, caveat = ring_verdict(free, phys, errs, corr, shadow_seen)
         if deg_r:
             degenerate = True
             notes.append(note)
-    return notes, degenerate, vif_ring
+    return notes, degenerate, vif_ring, caveat
 
 
 def _nuisance_notes(free, phys, err, psf_given: bool, clipped: bool):
@@ -268,7 +268,7 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     at_bound = [n for n in free if parameter(n).transform.at_bound(sol.phys[n])]
     if at_bound:
         notes.append("at the bound of its range: " + ", ".join(at_bound))
-    more, degenerate, vif_ring = _separation_notes(free, sol.phys, err, corr, cond,
+    more, degenerate, vif_ring, caveat = _separation_notes(free, sol.phys, err, corr, cond,
                                                    seen.shadow_seen)  # fmt: skip
     top = clipping_bounds(seen.grey)[1]
     notes += more + _nuisance_notes(free, sol.phys, err, obs.psf is not None, math.isfinite(top))
@@ -312,5 +312,5 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
         seconds=time.perf_counter() - t_start, transfer=obs.transfer,
         transfer_reason=obs.transfer_reason, goodness=float(goodness), noise_trend=trend,
         pixels=obs.pixels, pixels_reason=obs.pixels_reason, blur_variance=float(blur_v),
-        blur_z=float(blur_z),
+        blur_z=float(blur_z), caveat=caveat,
     )  # fmt: skip

@@ -42,6 +42,9 @@ class Fit:
       out of their physical range, no pixel noise found).
     - `valid` (property): converged, not degenerate and no message: the values and
       errors are a measurement. Anything else is a flagged result, not one to report.
+    - `caveat`: what a valid measurement rests on where that is worth saying ("" when
+      nothing): a D that only a faint feature fixes (the relativistic ring seen at 5
+      to 10 standard errors), whose error allows for it.
     - `variance_inflation`: the largest $1/(1 - R^2)$ over D, FOV (and sigma), $R$
       the multiple correlation of one with the other free parameters (NaN when D or
       FOV is held); above 1e9 the curvature is singular.
@@ -111,6 +114,7 @@ class Fit:
     pixels_reason: str = ""
     blur_variance: float = math.nan
     blur_z: float = math.nan
+    caveat: str = ""
 
     @property
     def fits_noise(self) -> bool:
@@ -176,7 +180,7 @@ class Fit:
             transfer=self.transfer, transfer_reason=self.transfer_reason,
             goodness=self.goodness, noise_trend=self.noise_trend, pixels=self.pixels,
             pixels_reason=self.pixels_reason, blur_variance=self.blur_variance,
-            blur_z=self.blur_z,
+            blur_z=self.blur_z, caveat=self.caveat,
         )  # fmt: skip
         return out
 
@@ -217,4 +221,6 @@ class Fit:
             lines.append(f"pixels       = {self.pixels} ({self.pixels_reason})")
         if self.message:
             lines.append(self.message)
+        if self.caveat:
+            lines.append(f"caveat: {self.caveat}")
         return "\n".join(lines)
