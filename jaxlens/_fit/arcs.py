@@ -172,7 +172,7 @@ def _values(p, xs, ys, *, jac: bool = False):
     the last axis, and with `jac` its Jacobian (..., 10) with respect to `p`: x_c, y_c,
     ln R, b_x, b_y, ln w, shape (raw), A, floor, R_sh (pixels, image units; R_sh < -5
     px: no shadow). The Jacobian is written out: forward-mode differentiation of the
-    same expressions took 14 times the values' time, this 2-3 times."""
+    same expressions took 14 times the values' time (160,000 samples, float64)."""
     dx, dy = xs - p[0], ys - p[1]
     rho = jnp.sqrt(dx * dx + dy * dy + 1e-12)
     ux, uy = dx / rho, dy / rho
@@ -233,9 +233,9 @@ class _Pixels(eqx.Module):
 _CHUNK_SAMPLES = 1 << 16
 
 
-def _pack(x, y, v, side: float, weight=None, k: int = 2) -> tuple[_Pixels, int]:
+def _pack(x, y, v, side: float, weight=None, k: int = 2) -> _Pixels:
     """The pixels centred at `x`, `y` with values `v` as a `_Pixels` of k x k samples
-    each, and their count. Padded to one of a few sizes an octave (to at most 1/8 more,
+    each, padded to one of a few sizes an octave (to at most 1/8 more,
     or whole chunks of `_CHUNK_SAMPLES` samples), so that images of similar size and
     noise draws share one compiled program."""
     n = int(v.size)
@@ -253,7 +253,7 @@ def _pack(x, y, v, side: float, weight=None, k: int = 2) -> tuple[_Pixels, int]:
         return to_device(np.concatenate([a, np.full(pad, a[-1])]).reshape(chunks, size))
 
     w = to_device(np.concatenate([wt, np.zeros(pad)]).reshape(chunks, size))
-    return _Pixels(arr(x), arr(y), arr(v), w, to_device(float(side))), n
+    return _Pixels(arr(x), arr(y), arr(v), w, to_device(float(side)))
 
 
 _NO_VIEW = (1.0, np.eye(3))  # the camera itself: (f, rot) that leave image points as they are
@@ -630,7 +630,7 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
 
     def every(k: int) -> _Pixels:  # every pixel, k x k samples each
         if k not in packed:
-            packed[k] = _pack(xo, yo, vals, side, wo, k)[0]
+            packed[k] = _pack(xo, yo, vals, side, wo, k)
         return packed[k]
 
     # Stage 1: every start on b x b bins (b = 2, more on images over 40,000 pixels,
@@ -640,7 +640,7 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
         xb, yb, mb = _bins(a, x, y, side, b)
         rb, cb = np.nonzero(np.isfinite(mb))
         v1, w1 = mb[rb, cb], np.ones(rb.size)
-        d1, sigma1 = _pack(xb[cb], yb[rb], v1, side * b)[0], sigma / b
+        d1, sigma1 = _pack(xb[cb], yb[rb], v1, side * b), sigma / b
     else:
         v1, w1 = vals, wo
         d1, sigma1 = every(2), sigma
@@ -673,7 +673,7 @@ def _measure(a, wt, x, y, side: float, frame, sigma_px: float, focal) -> ArcGues
     far = ok & ~near & ~inside
     k = _samples_for(math.exp(p[5]) / side)
     nr, nc = np.nonzero(near)
-    d2 = _pack(x[nc], y[nr], a[nr, nc], side, None if wt is None else wt[nr, nc], k)[0]
+    d2 = _pack(x[nc], y[nr], a[nr, nc], side, None if wt is None else wt[nr, nc], k)
     far_row = (0.0, 0.0)
     if far.any():  # the pixels far away, where the model is the floor, as their mean
         fv = a[far]
