@@ -235,16 +235,12 @@ _CHUNK_SAMPLES = 1 << 16
 
 def _pack(x, y, v, side: float, weight=None, k: int = 2) -> _Pixels:
     """The pixels centred at `x`, `y` with values `v` as a `_Pixels` of k x k samples
-    each, padded to one of a few sizes an octave (to at most 1/8 more,
-    or whole chunks of `_CHUNK_SAMPLES` samples), so that images of similar size and
-    noise draws share one compiled program."""
+    each, padded to whole chunks of `_CHUNK_SAMPLES` samples: every image of up to one
+    chunk (the first stage's bins of any image, every pixel of a small one), and noise
+    draws of a larger one, share one compiled program."""
     n = int(v.size)
-    per = max(1, _CHUNK_SAMPLES // (k * k))
-    if n <= per:
-        q = 1 << max((n - 1).bit_length() - 3, 6)
-        chunks, size = 1, -(-n // q) * q
-    else:
-        chunks, size = -(-n // per), per
+    size = max(1, _CHUNK_SAMPLES // (k * k))
+    chunks = -(-n // size)
     pad = chunks * size - n
     wt = np.ones(n) if weight is None else np.asarray(weight, float)
 
