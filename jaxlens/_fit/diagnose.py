@@ -269,7 +269,7 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     if at_bound:
         notes.append("at the bound of its range: " + ", ".join(at_bound))
     more, degenerate, vif_ring, caveat = _separation_notes(free, sol.phys, err, corr, cond,
-                                                   seen.shadow_seen)  # fmt: skip
+                                                           seen.shadow_seen)  # fmt: skip
     top = clipping_bounds(seen.grey)[1]
     notes += more + _nuisance_notes(free, sol.phys, err, obs.psf is not None, math.isfinite(top))
     model_img = pix.paint(sol.model)
