@@ -6,7 +6,6 @@ import dataclasses
 import math
 import time
 
-import jax
 import numpy as np
 import optimistix as optx
 import scipy.ndimage
@@ -154,11 +153,7 @@ def blur_mismatch(sol: Solution, pix, data, noise: AbstractNoise, scale2: float)
     c = np.where((pix.side == pix.block) & (pix.count > 0), lap[rr, cc], 0.0)
     if not np.any(c):
         return math.nan, math.nan
-    step = 1e-6 * max(float(np.max(np.abs(model))), 1e-12)
-    d, wt = (np.asarray(v) for v in (data.data, data.weight))
-    with jax.enable_x64(True):  # the fit's own precision
-        r_up = np.asarray(noise.residuals(model + step, d, wt)).ravel()
-        slope = (r_up - np.asarray(noise.residuals(model, d, wt)).ravel()) / step
+    slope = noise.residual_slope(model, data.data, data.weight).ravel()
     col = slope * c
     jac = np.asarray(sol.jac)[:n]
     coef = np.linalg.lstsq(jac, col, rcond=None)[0]

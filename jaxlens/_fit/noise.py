@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage
 
+from .._compile import program
 from .pixels import pixel_centres
 
 
@@ -238,6 +239,13 @@ class AbstractNoise(eqx.Module):
         compared bin) against `data` (each bin's mean), `weight` the square root of the
         pixels in a bin (0: left out). Traceable."""
 
+    def residual_slope(self, model, data, weight) -> np.ndarray:
+        """The derivative of each bin's residual with respect to its model value (noise
+        units per data unit; `residuals`' arguments), exact (forward mode), float64."""
+        with jax.enable_x64(True):
+            args = jax.tree.map(lambda a: np.asarray(a, np.float64), (model, data, weight))
+            return np.asarray(_residual_slope(self, *args))
+
     @property
     @abc.abstractmethod
     def level_given(self) -> bool:
@@ -278,6 +286,15 @@ class AbstractNoise(eqx.Module):
         the image."""
         dof = max(int(dof), 1)
         return (chi2 / dof - 1.0) / math.sqrt(2.0 / dof + self.spread() ** 2)
+
+
+@program(profile="legacy_fusion_o0_side")
+def _residual_slope(noise, model, data, weight):
+    # The residuals are bin by bin: their Jacobian is diagonal, one forward pass.
+    def rows(m):
+        return noise.residuals(m, data, weight)
+
+    return jax.jvp(rows, (model,), (jnp.ones_like(model),))[1]
 
 
 class Gaussian(AbstractNoise):
