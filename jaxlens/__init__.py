@@ -14,6 +14,7 @@ _MODULES = {
     "_exact": (
         "B_CRIT",
         "CAPTURED",
+        "Crossings",
         "ESCAPED",
         "R_PHOTON",
         "UNRESOLVED",
@@ -21,6 +22,7 @@ _MODULES = {
         "darwin_deflection",
         "impact_parameter",
         "periapsis",
+        "radius_crossings",
         "shadow_angle",
         "strong_field_deflection",
         "weak_field_deflection",

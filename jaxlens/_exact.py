@@ -8,6 +8,7 @@ parameter ($b \\to b_c$, two roots merge at $u = 2/3$).
 """
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -338,3 +339,164 @@ def periapsis(b):
     """Periapsis radius $r_0$ of a ray with impact parameter $b > b_c$: $b^2 = r_0^3/(r_0-1)$."""
     s = B_CRIT / b
     return 1.0 / real_roots(s, (1.0 - s) * (1.0 + s))[1]
+
+
+class Crossings(NamedTuple):
+    """Where rays from a static camera cross a sphere $r = R$ about the hole
+    (`radius_crossings`).
+
+    **Fields:**
+    - `first`: the azimuth swept from the camera to the ray's first crossing
+      (radians, in the ray's orbital plane; 0 where it has none).
+    - `second`: the azimuth at its second crossing, after its turning point (radians;
+      0 where it has none).
+    - `count`: int8, how many times the ray crosses the sphere: 0, 1 or 2; -1 where
+      the ray is unresolved (it winds onto the photon sphere, or beyond the winding
+      budget). The camera's own position is not a crossing.
+    """
+
+    first: jax.Array
+    second: jax.Array
+    count: jax.Array
+
+
+def _turning_integral(a_t, a1, a_q, d32, d_tp, iterations):
+    # int du / sqrt|P| from a point u to the turning root t: 2 sqrt|u - t|
+    # R_F((u - u1) d32, d_tp d32, d_tp |u - q|), from the point's factors a1 = sqrt(u -
+    # u1), a_t = sqrt|u - t|, a_q = sqrt|u - q| (q: the other root of the pair) and
+    # d_tp = t - u1.
+    return 2.0 * a_t * carlson_rf(a1 * a1 * d32, d_tp * d32, d_tp * a_q * a_q,
+                                  iterations=iterations)  # fmt: skip
+
+
+def _segment_integral(x, y, dxy, iterations):
+    # int_y^x du / sqrt|(u - u1)(u - u2)(u - u3)| between two points of one interval
+    # where no root lies, from each point's factors (sqrt|u - u_i|, i = 1, 2, 3) and
+    # dxy = |x - y|: Carlson's (1988) 2 |x - y| R_F(V12^2, V13^2, V14^2), with no
+    # difference of two integrals (which cancels where the points are close).
+    (x1, x2, x3), (y1, y2, y3) = x, y
+    v12 = x1 * x2 * y3 + y1 * y2 * x3
+    v13 = x1 * x3 * y2 + y1 * y3 * x2
+    v14 = x1 * y2 * y3 + y1 * x2 * x3
+    return 2.0 * dxy * carlson_rf(v12 * v12, v13 * v13, v14 * v14, iterations=iterations)
+
+
+def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
+                     max_windings: float = 10.0) -> Crossings:  # fmt: skip
+    """Exact azimuths at which rays from a static camera cross the sphere $r = R$.
+
+    A ray that passes a turning point (its periapsis, or for a camera inside the
+    photon sphere its apoapsis) can cross the sphere twice: on its way to the turning
+    point and after it; a ray with none crosses it at most once; a ray that turns
+    before reaching $R$, or is captured first, never does. Each azimuth is a Carlson
+    $R_F$ integral of $du / \\sqrt{u^3 - u^2 + 1/b^2}$ between the camera's $u = 1/D$
+    and $1/R$ (through the turning point for a second crossing), as `escape_angle`'s
+    are to $u = 0$. `radius = inf` gives `escape_angle`'s escaping rays (one crossing
+    at their escape angle, bit for bit).
+
+    **Arguments:**
+    - `alpha`: local ray angle from the inward radial direction, radians in
+      $[0, \\pi]$.
+    - `distance`: camera radius $D > 1$ (units of R_S).
+    - `radius`: the sphere's radius $R > 1$ (units of R_S; `inf`: the sky at
+      infinity). Broadcasts with `alpha` and `distance`.
+    - `iterations`, `max_windings`: as `escape_angle`'s.
+
+    **Returns:** `Crossings(first, second, count)`.
+    """
+    alpha, distance, radius = jnp.broadcast_arrays(alpha, distance, radius)
+    dtype = alpha.dtype
+    at_infinity = jnp.isinf(radius)
+    phi_inf, status_inf, _ = escape_angle(alpha, distance, iterations=iterations,
+                                          max_windings=max_windings)  # fmt: skip
+    rr = jnp.where(at_infinity, 2.0 * distance + 2.0, radius)  # finite stand-in
+    u0, ur = 1.0 / distance, 1.0 / rr
+    # u_R - u0 and the points' offsets from 2/3, each without cancellation (as
+    # `escape_angle`'s e0).
+    d_ur = (distance - rr) / (distance * rr)
+    e0 = jnp.where(distance < 4.0, (3.0 - 2.0 * distance) / (3.0 * distance), u0 - 2.0 / 3.0)
+    er = jnp.where(rr < 4.0, (3.0 - 2.0 * rr) / (3.0 * rr), ur - 2.0 / 3.0)
+    omu0 = (distance - 1.0) / distance
+    sa, ca = jnp.abs(jnp.sin(alpha)), jnp.cos(alpha)
+    root = u0 * jnp.sqrt(omu0)
+    b = sa / root
+    inward = ca > 0  # u grows along the ray
+    b_small = 1e-3 if dtype == jnp.float64 else 1e-2
+    small = b < b_small
+    sa_ = jnp.where(small, 1.0, sa)
+    b_ = jnp.where(small, 1.0, b)
+    a_ps = (3.0 * e0) ** 2 * (3.0 * u0 + 1.0) / 4.0
+    use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
+    kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
+    kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
+    kappa = jnp.where(use_e, kappa_e, kappa_b)
+    turning = (kappa > 0) & ~small
+    sg = jnp.abs(root * ca / sa_)  # sqrt(P(u0)) = u0 sqrt(1 - u0) |cot alpha|
+    forward = jnp.where(inward, d_ur > 0, d_ur < 0)  # R lies ahead of the camera
+
+    # --- b > b_c: the roots u1 < 0 < u2 <= u3; the ray lives in [0, u2] (a camera
+    # outside the photon sphere, turning point u2) or in [u3, 1] (inside, u3).
+    kt = jnp.where(turning, kappa, 0.5)
+    st = jnp.where(turning, B_CRIT / b_, 0.5)
+    u1, u2, e2, e3, _, d32, d21, d31 = real_roots(st, kt)
+    outside = e0 < 0
+
+    def factors(u, e):  # sqrt|u - u_i| at a point, the turning root's left for later
+        return jnp.sqrt(u - u1), jnp.sqrt(jnp.abs(e - e2)), jnp.sqrt(jnp.abs(e - e3))
+
+    c1, c2, c3 = factors(u0, e0)
+    # The camera's factor at its turning root, through sqrt(P(u0)) (exact from alpha).
+    tiny = jnp.finfo(dtype).tiny
+    c2 = jnp.where(outside, sg / jnp.maximum(c1 * c3, tiny), c2)
+    c3 = jnp.where(outside, c3, sg / jnp.maximum(c1 * c2, tiny))
+    s1, s2, s3 = factors(ur, er)
+    # |u_R - u2| from the offsets to 2/3 where u2 is near it (a ray near the photon
+    # sphere), else directly: in the far field both are small, and their offsets from
+    # 2/3 would keep only float32's 6e-8 of them absolutely.
+    s2 = jnp.where(e2 > -1.0 / 3.0, s2, jnp.sqrt(jnp.abs(u2 - ur)))
+    d_tp = jnp.where(outside, d21, d31)
+    t_cam = _turning_integral(jnp.where(outside, c2, c3), c1, jnp.where(outside, c3, c2), d32,
+                              d_tp, iterations)  # fmt: skip
+    t_r = _turning_integral(jnp.where(outside, s2, s3), s1, jnp.where(outside, s3, s2), d32,
+                            d_tp, iterations)  # fmt: skip
+    seg = _segment_integral((c1, c2, c3), (s1, s2, s3), jnp.abs(d_ur), iterations)
+    # Toward the turning point: inward outside it, outward inside it.
+    toward = inward == outside
+    # R within the ray's interval: below u2 outside, in [u3, 1) inside.
+    reach = jnp.where(outside, er <= e2, (er >= e3) & (ur < 1.0))
+    # Before the turning point: R ahead of the camera (either way the ray moves); after
+    # it: for a ray moving toward it, anywhere in the interval.
+    before = turning & reach & forward
+    after = turning & reach & toward
+
+    # --- b <= b_c (or b -> 0): no turning point; u moves one way, from u0 to u_R.
+    critical = ~turning & ~small & inward & (kappa >= 0)
+    free = ~turning & ~small & ~critical
+    kf = jnp.where(free, kappa, -1.0)
+    bf = jnp.where(free, b_, 0.5 * B_CRIT)
+    v1, em, n = complex_roots(bf, kf)
+    hi_u, lo_u = jnp.where(d_ur > 0, ur, u0), jnp.where(d_ur > 0, u0, ur)
+    hi_e, lo_e = jnp.where(d_ur > 0, er, e0), jnp.where(d_ur > 0, e0, er)
+    phi_free = _integral_complex(hi_u, lo_u, jnp.abs(d_ur), hi_e - em, lo_e - em, v1, n,
+                                 iterations)  # fmt: skip
+    phi_small = small_b_integral(hi_u, lo_u, jnp.abs(d_ur), b)
+    once = ~turning & ~critical & forward & (ur < 1.0)
+
+    first = jnp.where(turning, jnp.where(before, seg, t_cam + t_r),
+                      jnp.where(small, phi_small, phi_free))  # fmt: skip
+    second = jnp.where(turning & before & after, t_cam + t_r, 0.0)
+    count = jnp.where(turning, before.astype(jnp.int8) + after.astype(jnp.int8),
+                      once.astype(jnp.int8))  # fmt: skip
+    cap = 2.0 * jnp.pi * max_windings
+    unresolved = (critical & forward) | ~(jnp.isfinite(first) & (first <= cap))
+    unresolved = unresolved | ((count == 2) & ~(jnp.isfinite(second) & (second <= cap)))
+    count = jnp.where(unresolved, -1, count)
+    first = jnp.where(count > 0, first, 0.0)
+    second = jnp.where(count > 1, second, 0.0)
+    # The sky at infinity: `escape_angle`'s own values.
+    escaped = status_inf == ESCAPED
+    first = jnp.where(at_infinity, jnp.where(escaped, phi_inf, 0.0), first)
+    second = jnp.where(at_infinity, 0.0, second)
+    count_inf = jnp.where(status_inf == UNRESOLVED, -1, escaped.astype(jnp.int8))
+    count = jnp.where(at_infinity, count_inf, count)
+    return Crossings(first.astype(dtype), second.astype(dtype), count.astype(jnp.int8))

@@ -1,0 +1,201 @@
+"""Rays to a sphere at a finite radius (`radius_crossings`): every crossing's azimuth
+against mpmath quadrature, the sky at infinity bit for bit, the hard cases (the
+sphere inside the photon sphere, through the camera, inside the camera's radius,
+grazed by the ray), under `jit`, `vmap` and `grad`, in float32 and float64."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import mpmath as mp
+import numpy as np
+import pytest
+
+import jaxlens as jl
+from jaxlens._exact import radius_crossings
+
+
+def reference_crossings(alpha: float, distance: float, radius: float, dps: int = 40):
+    """The azimuths (radians) at which a ray from a static camera at `distance` (R_S),
+    local angle `alpha`, crosses r = `radius`, in order, by mpmath quadrature of
+    du / sqrt(P) at `dps` digits; at a turning point u_t the substitution
+    u = u_t -+ s^2 removes the square-root singularity. Shares no code with jaxlens."""
+    with mp.workdps(dps):
+        a, d, r = mp.mpf(alpha), mp.mpf(distance), mp.mpf(radius)
+        u0, ur = 1 / d, 1 / r
+        b = d * abs(mp.sin(a)) / mp.sqrt(1 - u0)
+        c = 1 / b**2
+        p = lambda u: c - u**2 + u**3  # noqa: E731
+        inward = mp.cos(a) > 0
+        roots = mp.polyroots([c, 0, -1, 1], maxsteps=400, extraprec=4 * dps, asc=True)
+        real = sorted(mp.re(x) for x in roots if abs(mp.im(x)) < mp.mpf(10) ** (-dps + 5))
+
+        def plain(lo, hi):
+            return mp.quad(lambda u: 1 / mp.sqrt(p(u)), [lo, hi])
+
+        if len(real) == 3 and u0 <= real[1]:  # outside the photon sphere: u in [0, u2]
+            u1, u2, u3 = real
+
+            def to_turn(u):  # int_u^u2, u = u2 - s^2
+                g = lambda s: 2 / mp.sqrt((u2 - s * s - u1) * (u3 - u2 + s * s))  # noqa: E731
+                return mp.quad(g, [0, mp.sqrt(u2 - u)])
+
+            out = []
+            if inward:
+                if u0 < ur <= u2:
+                    out.append(to_turn(u0) - to_turn(ur))
+                if ur <= u2:
+                    out.append(to_turn(u0) + to_turn(ur))
+            elif ur < u0:
+                out.append(to_turn(ur) - to_turn(u0))
+            return [float(x) for x in out]
+        if len(real) == 3:  # inside: u in [u3, 1]
+            u1, u2, u3 = real
+
+            def to_turn(u):  # int_u3^u, u = u3 + s^2
+                g = lambda s: 2 / mp.sqrt((u3 + s * s - u1) * (u3 + s * s - u2))  # noqa: E731
+                return mp.quad(g, [0, mp.sqrt(u - u3)])
+
+            out = []
+            if not inward:
+                if u3 <= ur < u0:
+                    out.append(to_turn(u0) - to_turn(ur))
+                if u3 <= ur < 1:
+                    out.append(to_turn(u0) + to_turn(ur))
+            elif u0 < ur < 1:
+                out.append(to_turn(ur) - to_turn(u0))
+            return [float(x) for x in out]
+        if inward and u0 < ur < 1:
+            return [float(plain(u0, ur))]
+        if not inward and ur < u0:
+            return [float(plain(ur, u0))]
+        return []
+
+
+_crossings = jax.jit(radius_crossings)
+
+
+def _check(alpha, distance, radius, rtol, dtype=np.float64):
+    a, d, r = (np.asarray(v, dtype) for v in np.broadcast_arrays(alpha, distance, radius))
+    got = _crossings(a, d, r)
+    assert got.first.dtype == dtype and got.second.dtype == dtype
+    worst = 0.0
+    for i in np.ndindex(a.shape):
+        want = reference_crossings(float(a[i]), float(d[i]), float(r[i]))
+        n = int(got.count[i])
+        assert n == len(want), (a[i], d[i], r[i], n, want)
+        for g, w in zip((float(got.first[i]), float(got.second[i]))[:n], want):
+            worst = max(worst, abs(g - w) / abs(w))
+        for j, v in enumerate((got.first[i], got.second[i])):
+            if j >= n:
+                assert v == 0.0  # no crossing: 0, never NaN
+    assert worst < rtol, worst
+    return worst
+
+
+# Cameras inside the photon sphere, near it and far; spheres inside the photon sphere,
+# at the camera's radius, inside and outside it.
+DISTANCES = (1.2, 1.45, 2.0, 3.0, 20.0, 1e4)
+RADII = (1.1, 1.3, 1.5, 1.6, 2.5, 3.0, 10.0, 20.0, 50.0, 1e6)
+
+
+@pytest.mark.parametrize("distance", DISTANCES)
+def test_every_crossing_matches_quadrature(distance):
+    alpha = np.linspace(0.01, math.pi - 0.01, 7)[:, None]
+    _check(alpha, distance, np.asarray(RADII)[None, :], 1e-11)
+
+
+def test_the_sky_at_infinity_is_escape_angle_bit_for_bit():
+    alpha = np.linspace(0.0, math.pi, 257)[:, None]
+    distance = np.asarray([1.05, 1.5, 2.0, 3.0, 20.0, 1e12])[None, :]
+    phi, status, _ = jax.jit(jl._exact.escape_angle)(alpha, distance)
+    got = jax.jit(radius_crossings)(alpha, distance, np.inf)
+    escaped = np.asarray(status) == jl.ESCAPED
+    np.testing.assert_array_equal(np.asarray(got.first)[escaped], np.asarray(phi)[escaped])
+    assert np.all(np.asarray(got.first)[~escaped] == 0.0)
+    want = np.where(escaped, 1, np.where(np.asarray(status) == jl.UNRESOLVED, -1, 0))
+    np.testing.assert_array_equal(got.count, want)
+
+
+def test_a_sphere_through_the_camera():
+    # R = D: the camera's own position is no crossing; an inward ray outside the
+    # photon sphere comes back to D after its periapsis, an outward one inside it
+    # after its apoapsis.
+    # (alpha = pi/2 is left out: the ray starts at its turning point, tangent to the
+    # sphere, where a crossing at an azimuth of order sqrt(eps) is rounding's.)
+    for d in (1.3, 3.0, 20.0):
+        alpha = np.linspace(0.05, math.pi - 0.05, 10)
+        got = _crossings(alpha, d, d)
+        assert np.all(np.asarray(got.count) <= 1)
+        _check(alpha, d, d, 1e-11)
+
+
+def test_grazing_rays():
+    # A sphere just beyond a ray's periapsis is crossed twice, near the same azimuth;
+    # just inside it, never.
+    d, alpha = 20.0, 0.3
+    r0 = float(jl.periapsis(jl.impact_parameter(alpha, d)))
+    for rel in (1e-12, 1e-9, 1e-6, 1e-3):
+        got = _crossings(alpha, d, r0 * (1 + rel))
+        assert int(got.count) == 2
+        want = reference_crossings(alpha, d, r0 * (1 + rel))
+        np.testing.assert_allclose([got.first, got.second], want, rtol=1e-9, atol=1e-12)
+        assert int(_crossings(alpha, d, r0 * (1 - rel)).count) == 0
+
+
+def test_near_critical_rays_and_their_windings():
+    # alpha within 1e-10 of the shadow's edge: the ray winds near the photon sphere
+    # before it reaches R. The azimuth grows as -ln(alpha - alpha_sh), so its
+    # condition number in alpha is 1 / ln(...) / 1e-10 ~ 4e8: float64's rounding of
+    # the inputs' own arithmetic costs up to ~1e-8 of it there.
+    d = 20.0
+    a_sh = float(jl.shadow_angle(d))
+    radii = np.asarray([3.0, 50.0])[:, None]
+    assert _check(a_sh * (1 + np.asarray([1e-10])), d, radii, 3e-8) > 0
+    _check(a_sh * (1 + np.asarray([1e-6, 1e-3])), d, radii, 1e-11)
+
+
+def test_float32_matches_float64():
+    alpha = np.linspace(0.02, math.pi - 0.02, 31)[:, None]
+    radius = np.asarray([1.3, 3.0, 50.0, 1e6], np.float32)[None, :]
+    for d in (2.0, 20.0, 1e4):
+        lo = _crossings(alpha.astype(np.float32), np.float32(d), radius)
+        hi = _crossings(alpha, d, radius.astype(np.float64))
+        np.testing.assert_array_equal(lo.count, hi.count)
+        for f, g in ((lo.first, hi.first), (lo.second, hi.second)):
+            assert np.all(np.isfinite(f))
+            np.testing.assert_allclose(f, g, rtol=2e-4, atol=1e-5)
+
+
+def test_jit_vmap_and_gradients():
+    alpha = jnp.linspace(0.05, math.pi - 0.05, 40)
+    radii = jnp.asarray([1.3, 3.0, 20.0, 50.0, jnp.inf])
+    d = 20.0
+
+    def total(a, dd, r):
+        c = radius_crossings(a, dd, r)
+        return c.first + c.second
+
+    eager = radius_crossings(alpha[:, None], d, radii[None, :])
+    jitted = jax.jit(jax.vmap(lambda r: radius_crossings(alpha, d, r), out_axes=1))(radii)
+    for e, j in zip(eager, jitted):  # the same within rounding (XLA fuses the jitted)
+        np.testing.assert_allclose(e, j, rtol=1e-13, atol=1e-15)
+    # Gradients with respect to every argument: finite everywhere (no branch's NaN
+    # leaks through the masks), and where the ray crosses, equal to central
+    # differences.
+    grad = jax.vmap(jax.vmap(jax.grad(total, argnums=(0, 1, 2)), (None, None, 0)),
+                    (0, None, None))  # fmt: skip
+    grads = jax.jit(grad)(alpha, d, radii)
+    for g in grads:
+        assert np.all(np.isfinite(g))
+    total = jax.jit(total)
+    k, r0 = 10, 50.0
+    a0 = float(alpha[k])
+    for i, g in enumerate(grads):
+        x = [a0, d, r0]
+        h = 1e-6 * max(abs(x[i]), 1.0)
+        up, dn = list(x), list(x)
+        up[i] += h
+        dn[i] -= h
+        fd = (float(total(*up)) - float(total(*dn))) / (2 * h)
+        assert abs(float(g[k, 3]) - fd) <= 1e-6 * max(abs(fd), 1.0), (i, float(g[k, 3]), fd)
