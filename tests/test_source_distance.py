@@ -199,3 +199,25 @@ def test_jit_vmap_and_gradients():
         dn[i] -= h
         fd = (float(total(*up)) - float(total(*dn))) / (2 * h)
         assert abs(float(g[k, 3]) - fd) <= 1e-6 * max(abs(fd), 1.0), (i, float(g[k, 3]), fd)
+
+
+def test_einstein_ring_of_a_source_at_a_finite_distance():
+    # Sgr A*'s set-up: M = 2.8e6 M_sun seen from 8.5 kpc, a star as far behind it
+    # (D_LS = D_OL). The primary ring, where the ray's crossing of r = D_LS lies
+    # exactly behind the hole (azimuth pi), is at 1.158"; the source at infinity's,
+    # 1.638". Weak field: theta_E = sqrt(2 D_LS / (D_OL D_OS)) (R_S = 1), to O(theta_E).
+    d = 8.5 * 3.0856775814913673e19 / (2.8e6 * 2953.25)  # 8.5 kpc in R_S
+    crossing = jax.jit(lambda a, r: radius_crossings(a, d, r).first)
+
+    def ring(r):
+        lo, hi = 1e-7, 1e-4  # radians: the first crossing's azimuth falls through pi
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if float(crossing(mid, r)) > math.pi else (lo, mid)
+        return 0.5 * (lo + hi)
+
+    arcsec = math.pi / 180 / 3600
+    finite, infinite = ring(d), ring(np.inf)
+    assert round(finite / arcsec, 3) == 1.158 and round(infinite / arcsec, 3) == 1.638
+    np.testing.assert_allclose(finite, math.sqrt(2 * d / (d * 2 * d)), rtol=1e-4)
+    np.testing.assert_allclose(infinite, math.sqrt(2 / d), rtol=1e-4)
