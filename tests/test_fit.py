@@ -707,11 +707,12 @@ def test_cli(tmp_path, capsys, monkeypatch):
     path = tmp_path / "ring.png"
     write_png(path, noisy(modelled(20.0, 60.0, 1.5, 0.1), 0.01, seed=16), 16)
     assert cli.main(["fit", str(path), "--star-sigma-deg", "1.5", "--mass", "10", "--json"]) == 0
-    # The solve, the starting values' search, the check of the re-estimated noise and
-    # `find_arcs`' three (its solve on bins and on pixels, its model on the pixels): all
-    # kept (a ring's source starts behind the hole: no scan of the loss, no arcs' rays;
-    # those are kept in test_fit_general's CLI fit of arcs).
-    assert len(list(kept.glob("*.executable"))) == 6 and not list(kept.glob("*.refused"))
+    # The solve, the starting values' search, the check of the re-estimated noise, the
+    # blur test's residual slopes and `find_arcs`' three (its solve on bins and on
+    # pixels, its model on the pixels): all kept (a ring's source starts behind the hole:
+    # no scan of the loss, no arcs' rays; those are kept in test_fit_general's CLI fit
+    # of arcs).
+    assert len(list(kept.glob("*.executable"))) == 7 and not list(kept.glob("*.refused"))
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["converged"] is True and out["transfer"] == "linear"
     assert isinstance(out["transfer_reason"], str)

@@ -56,9 +56,9 @@ def test_cli_fits_blurred_offset_arcs_with_a_mask(tmp_path, capsys, monkeypatch)
     kept = tmp_path / "programs"  # ... but the fit's programs kept, as the CLI does
     monkeypatch.setattr(_compile, "_FOLDER", kept)
     assert main(["fit", str(path), "--psf-sigma-px", "1.5", "--json"]) == 0
-    # The solve, the start search, the scan's loss, the arcs' rays and `find_arcs`' three
-    # (as in test_fit's CLI fit): all kept.
-    assert len(list(kept.glob("*.executable"))) == 7 and not list(kept.glob("*.refused"))
+    # The solve, the start search, the scan's loss, the arcs' rays, the blur test's
+    # residual slopes and `find_arcs`' three (as in test_fit's CLI fit): all kept.
+    assert len(list(kept.glob("*.executable"))) == 8 and not list(kept.glob("*.refused"))
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("distance", "distance_err", "fov_deg", "fov_deg_err", "source_lon_deg",
                 "source_lat_deg", "source_lon_deg_err", "source_lat_deg_err", "sigma_deg",
