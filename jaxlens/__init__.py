@@ -130,6 +130,7 @@ _MODULES = {
         "magnification",
         "point_lens_magnification",
         "point_source_images",
+        "point_source_images_at",
     ),
     "_plan": (
         "Plan",

@@ -103,6 +103,7 @@ from ._lensmap import (
     magnification as magnification,
     point_lens_magnification as point_lens_magnification,
     point_source_images as point_source_images,
+    point_source_images_at as point_source_images_at,
 )
 from ._plan import (
     Plan as Plan,
@@ -279,6 +280,7 @@ __all__ = [
     "planck",
     "point_lens_magnification",
     "point_source_images",
+    "point_source_images_at",
     "psf_margin",
     "radius_crossings",
     "ray_mesh",

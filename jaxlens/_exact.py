@@ -220,7 +220,8 @@ def small_b_integral(x, y, dxy, b):
     return b * (dxy - 0.5 * b * b * ((x**4 - y**4) / 4.0 - (x**3 - y**3) / 3.0))
 
 
-def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float = 10.0):
+def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float = 10.0,
+                 _kappa=None):  # fmt: skip
     """Exact escape angle of rays from a static camera, via Carlson's $R_F$.
 
     **Arguments:**
@@ -236,6 +237,8 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     code (`ESCAPED`, `CAPTURED`, `UNRESOLVED`) and the smallest radius reached
     (units of R_S; 1 for captured rays).
     """
+    # `_kappa`: $1 - b_c^2/b^2$ where the caller has it more accurately than `alpha`
+    # gives it (from the offset to the shadow's edge, `kappa_from_offset`).
     alpha, distance = jnp.broadcast_arrays(alpha, distance)
     dtype = alpha.dtype
     u0 = 1.0 / distance
@@ -260,7 +263,7 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
     # Each factor divided by b on its own: b^2 overflows for far cameras (b ~ D).
     kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
-    kappa = jnp.where(use_e, kappa_e, kappa_b)
+    kappa = jnp.where(use_e, kappa_e, kappa_b) if _kappa is None else _kappa
     turning = (kappa > 0) & ~small
     # Signed du/dphi at the camera: sqrt(G(u0)) = u0 sqrt(1 - u0) cot(alpha).
     sg = root * ca / sa_
@@ -382,7 +385,7 @@ def _segment_integral(x, y, dxy, iterations):
 
 
 def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
-                     max_windings: float = 10.0) -> Crossings:  # fmt: skip
+                     max_windings: float = 10.0, _kappa=None) -> Crossings:  # fmt: skip
     """Exact azimuths at which rays from a static camera cross the sphere $r = R$.
 
     A ray that passes a turning point (its periapsis, or for a camera inside the
@@ -408,8 +411,25 @@ def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
     dtype = alpha.dtype
     at_infinity = jnp.isinf(radius)
     phi_inf, status_inf, _ = escape_angle(alpha, distance, iterations=iterations,
-                                          max_windings=max_windings)  # fmt: skip
+                                          max_windings=max_windings, _kappa=_kappa)  # fmt: skip
     rr = jnp.where(at_infinity, 2.0 * distance + 2.0, radius)  # finite stand-in
+    first, second, count = finite_crossings(alpha, distance, rr, iterations=iterations,
+                                            max_windings=max_windings, _kappa=_kappa)  # fmt: skip
+    # The sky at infinity: `escape_angle`'s own values.
+    escaped = status_inf == ESCAPED
+    first = jnp.where(at_infinity, jnp.where(escaped, phi_inf, 0.0), first)
+    second = jnp.where(at_infinity, 0.0, second)
+    count_inf = jnp.where(status_inf == UNRESOLVED, -1, escaped.astype(jnp.int8))
+    count = jnp.where(at_infinity, count_inf, count)
+    return Crossings(first.astype(dtype), second.astype(dtype), count.astype(jnp.int8))
+
+
+def finite_crossings(alpha, distance, rr, *, iterations: int = 12, max_windings: float = 10.0,
+                     _kappa=None) -> Crossings:  # fmt: skip
+    """`radius_crossings` for a finite radius `rr` (broadcast with the others): its
+    own program, without `escape_angle`'s for the sky at infinity."""
+    alpha, distance, rr = jnp.broadcast_arrays(alpha, distance, rr)
+    dtype = alpha.dtype
     u0, ur = 1.0 / distance, 1.0 / rr
     # u_R - u0 and the points' offsets from 2/3, each without cancellation (as
     # `escape_angle`'s e0).
@@ -429,7 +449,7 @@ def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
     use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
     kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
     kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
-    kappa = jnp.where(use_e, kappa_e, kappa_b)
+    kappa = jnp.where(use_e, kappa_e, kappa_b) if _kappa is None else _kappa
     turning = (kappa > 0) & ~small
     sg = jnp.abs(root * ca / sa_)  # sqrt(P(u0)) = u0 sqrt(1 - u0) |cot alpha|
     forward = jnp.where(inward, d_ur > 0, d_ur < 0)  # R lies ahead of the camera
@@ -493,10 +513,16 @@ def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
     count = jnp.where(unresolved, -1, count)
     first = jnp.where(count > 0, first, 0.0)
     second = jnp.where(count > 1, second, 0.0)
-    # The sky at infinity: `escape_angle`'s own values.
-    escaped = status_inf == ESCAPED
-    first = jnp.where(at_infinity, jnp.where(escaped, phi_inf, 0.0), first)
-    second = jnp.where(at_infinity, 0.0, second)
-    count_inf = jnp.where(status_inf == UNRESOLVED, -1, escaped.astype(jnp.int8))
-    count = jnp.where(at_infinity, count_inf, count)
     return Crossings(first.astype(dtype), second.astype(dtype), count.astype(jnp.int8))
+
+
+def kappa_from_offset(offset, alpha_sh):
+    """$\\kappa = 1 - b_c^2/b^2$ of the ray at local angle $\\alpha_{sh}$ + `offset`
+    (radians; negative inside the shadow) from a camera whose shadow angle is
+    `alpha_sh`: $\\sin\\delta \\sin(2\\alpha_{sh} + \\delta) / \\sin^2\\alpha$, to full
+    relative accuracy however small the offset (through $\\alpha$ itself, $\\kappa$
+    keeps only eps / |offset| of it: 1e-4 for the fourth relativistic image at Sgr A*'s
+    distance)."""
+    a = alpha_sh + offset
+    s = jnp.sin(a)
+    return jnp.sin(offset) * jnp.sin(2.0 * alpha_sh + offset) / (s * s)

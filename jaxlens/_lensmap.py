@@ -15,12 +15,15 @@ ratio of solid angles, $\\mu = [\\sin\\alpha/\\alpha]\\,/\\,[\\sin\\theta/\\thet
 `jax.jacfwd` of the exact lens map.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from . import _exact
 from ._camera import Camera, sky_direction
 from ._messages import shown
 from ._ray_inputs import DISTANCE_MESSAGE, check_distance, check_real, distance_bad
@@ -182,3 +185,207 @@ def _point_source_images(direction, ray_map: RayMap, *, order: int) -> LensedIma
     p = jnp.stack([alpha * jnp.cos(betas), alpha * jnp.sin(betas)], axis=-1)
     mu = _magnification(p, ray_map)
     return LensedImages(alpha, betas, mu, theta)
+
+
+# Bisection steps of the exact image solve, in the log of the offset from the end of a
+# branch (a span of 70 in the log: offsets down to 1e-30 of the branch's width, which
+# the tenth relativistic image is above): 80 halve it to 6e-23, below float64's
+# resolution of the log.
+_BISECT = 80
+_LOG_SPAN = 70.0
+
+
+def _source_angle(phi, d, r):
+    """The source's signed angle from the hole's direction as the camera would see it in
+    flat space (radians): the point at azimuth `phi` (from the hole's camera side, in the
+    image's orbital plane) on the sphere r = `r` about a hole `d` away; `r = inf`: the
+    direction at azimuth `phi`."""
+    far = jnp.isinf(r)
+    rr = jnp.where(far, 1.0, r)
+    flat = jnp.arctan2(rr * jnp.sin(phi), d - rr * jnp.cos(phi))
+    return jnp.where(far, jnp.arctan2(jnp.sin(phi), -jnp.cos(phi)), flat)
+
+
+def _branch_phi(g, end, sign, d, r, alpha_sh, far: bool):
+    """The crossing azimuth (radians) on a branch at the log-offset `g`: the local angle
+    is `end + sign * exp(g)`, `end` the branch's end (the shadow's edge for the branch
+    after the turning point, `sign` +1; the angle whose periapsis is `r`, or the edge,
+    for the first crossing, `sign` -1), its offset from the edge `end - alpha_sh`
+    exactly where `end` is the edge; `far`: every source at infinity (`r` not read),
+    False: none, None: not known (each as it is)."""
+    gap = jnp.exp(g)
+    offset = (end - alpha_sh) + sign * gap
+    alpha = alpha_sh + offset
+    kappa = _exact.kappa_from_offset(offset, alpha_sh)
+    if far:
+        return _exact.escape_angle(alpha, d, max_windings=1e6, _kappa=kappa)[0]
+    crossings = _exact.radius_crossings if far is None else _exact.finite_crossings
+    c = crossings(alpha, d, r, max_windings=1e6, _kappa=kappa)
+    after = jnp.where(r < d, c.second, c.first)
+    return jnp.where(sign > 0, after, c.first)
+
+
+def _solve_branch(target, end, sign, g_lo, g_hi, d, r, alpha_sh, far):
+    """The log-offset `g` on a branch where the azimuth equals `target` (`_root`), and
+    the azimuth's slope `dphi/dg` there: `(g, slope)`, both differentiable in the
+    arguments."""
+    g = _root(far, (target, end, d, r, alpha_sh), sign, g_lo, g_hi)
+    slope = jax.jvp(lambda gg: _branch_phi(gg, end, sign, d, r, alpha_sh, far), (g,),
+                    (jnp.ones_like(g),))[1]  # fmt: skip
+    return g, slope
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _root(far, args, sign, g_lo, g_hi):
+    """The log-offset in [`g_lo`, `g_hi`] where the branch's azimuth (`_branch_phi` of
+    `args` = (target, end, d, r, alpha_sh)) equals the target, by bisection to float
+    resolution (the azimuth falls as the offset grows on both branches). Its derivative
+    is the implicit function's (`_root_jvp`)."""
+    target, end, d, r, alpha_sh = args
+
+    def bisect(_, lohi):
+        lo, hi = lohi
+        mid = 0.5 * (lo + hi)
+        above = _branch_phi(mid, end, sign, d, r, alpha_sh, far) > target
+        return jnp.where(above, mid, lo), jnp.where(above, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, _BISECT, bisect, (g_lo, g_hi))
+    return 0.5 * (lo + hi)
+
+
+@_root.defjvp
+def _root_jvp(far, primals, tangents):
+    args, sign, g_lo, g_hi = primals
+    g = _root(far, args, sign, g_lo, g_hi)
+
+    def residual(gg, a):
+        target, end, d, r, alpha_sh = a
+        return _branch_phi(gg, end, sign, d, r, alpha_sh, far) - target
+
+    moved = jax.jvp(lambda a: residual(g, a), (args,), (tangents[0],))[1]
+    slope = jax.jvp(lambda gg: residual(gg, args), (g,), (jnp.ones_like(g),))[1]
+    return g, -moved / slope
+
+
+def _images_at(theta, d, r, order, far):
+    """The images' local angles (radians) and signed magnifications for sources at
+    angle `theta` from +z on the sphere r = `r` (inf: at infinity; `far`: whether every
+    one is, None where not known), the two sides stacked first: `(alpha, mu)`, each
+    `(2, ...)`."""
+    base = (2 * order + 1) * jnp.pi
+    target = jnp.stack([base - theta, base + theta])
+    d, r = (jnp.broadcast_to(v, target.shape) for v in (d, r))
+    alpha_sh = _exact.shadow_angle(d)
+    # Where the ray's periapsis is r (a sphere inside the camera's radius and outside
+    # the photon sphere): the two branches meet there.
+    rr = jnp.where(jnp.isfinite(r) & (r < d) & (r > 1.5), r, 2.0)
+    sin_r = jnp.clip((rr / d) * jnp.sqrt(rr / (rr - 1.0)) * jnp.sqrt((d - 1.0) / d), 0.0, 1.0)
+    meet = jnp.isfinite(r) & (r < d) & (r > 1.5)
+    alpha_r = jnp.where(meet, jnp.arcsin(sin_r), alpha_sh)
+    # After the turning point (or the only crossing, r >= d): from the edge up to the
+    # meeting angle (r < d) or straight away (pi); the first crossing (r < d): down
+    # from the meeting angle (or the edge, r <= 1.5) to the hole's own direction. Both
+    # solved in one program, the branch a leading axis of data.
+    after_hi = jnp.where(r >= d, jnp.pi, alpha_r)
+    ends, signs = [alpha_sh], [1.0]
+    tops = [jnp.log(jnp.maximum(after_hi - alpha_sh, 1e-300)) - 1e-12]
+    if not far:
+        ends.append(alpha_r)
+        signs.append(-1.0)
+        tops.append(jnp.log(jnp.maximum(alpha_r, 1e-300)) - 1e-12)
+    n = len(ends)
+    top = jnp.stack(tops)
+    sign = jnp.broadcast_to(jnp.asarray(signs).reshape((n,) + (1,) * target.ndim), top.shape)
+    stack = lambda v: jnp.broadcast_to(v, top.shape)  # noqa: E731
+    g, slope = _solve_branch(stack(target), jnp.stack(ends), sign, top - _LOG_SPAN, top,
+                             stack(d), stack(r), stack(alpha_sh), far)  # fmt: skip
+    # A root at a branch's end is no root: the target lies beyond the branch's range.
+    # Sources on the far side of a sphere inside the camera's radius are seen after the
+    # turning point, those on the near side on the first crossing.
+    on_after = r >= d
+    if not far:
+        on_after = on_after | (meet & (g[0] < top[0] - 1e-9))
+    pick = jnp.where(on_after, 0, n - 1)
+    gap = jnp.exp(jnp.take_along_axis(g, pick[None], 0)[0])
+    alpha = jnp.where(on_after, alpha_sh + gap, alpha_r - gap)
+    # dPhi/dalpha: the offset grows with alpha after the turning point, falls with it
+    # on the first crossing.
+    dphi = jnp.where(on_after, 1.0, -1.0) * jnp.take_along_axis(slope, pick[None], 0)[0] / gap
+    phi = target
+    vt, dvt = jax.jvp(lambda p: _source_angle(p, d, r), (phi,), (jnp.ones_like(phi),))
+    mu = jnp.sin(alpha) / (jnp.sin(vt) * dvt * dphi)
+    return alpha, mu
+
+
+def point_source_images_at(
+    direction: Float[Array, "... 3"], distance, source_distance=np.inf, *, order: int = 0
+) -> LensedImages:
+    """Images of point sources at a finite distance from the hole (or at infinity),
+    solved on the exact closed form: every order at the closed form's own accuracy.
+
+    The source lies `source_distance` from the hole in the camera-frame `direction`
+    (from the hole; $+z$ is behind it, seen from the camera). The images of order $m$
+    lie where a ray's crossing of the sphere $r$ = `source_distance` (`radius_crossings`)
+    sweeps $(2m+1)\\pi - \\theta$ on the source's side and $(2m+1)\\pi + \\theta$ on the
+    other, $\\theta$ the source's angle from $+z$. Each is solved in the log of the
+    local angle's offset from the shadow's edge (or from the ray that grazes the
+    source's sphere), where the azimuth is smooth, so that a relativistic image's
+    offset keeps full relative accuracy.
+
+    The magnification is the ratio of the image's solid angle to the source's as the
+    camera would see it without the hole (flat space, the source `source_distance`
+    from a point `distance` away): $\\mu = \\sin\\alpha / (\\sin\\vartheta\\,
+    d\\vartheta/d\\alpha)$, $\\vartheta$ the source's flat-space angle from the hole's
+    direction, signed by the image's parity. At infinity it is `point_source_images`'.
+
+    **Arguments:**
+    - `direction (..., 3)`: finite, non-zero (any length).
+    - `distance`: the camera's radius $D > 1.5$ (units of R_S; a camera inside the
+      photon sphere sees sources at a finite distance along more branches than these).
+    - `source_distance`: the source's radius $R > 1$ (units of R_S; `inf`: at
+      infinity). Broadcasts with the directions.
+    - `order` (static, whole, $\\ge 0$): 0 for the primary and secondary images, $m$
+      for the relativistic pair that winds $m$ more times.
+
+    **Returns:** `LensedImages` (`source_theta`: the angle from $+z$ of the source's
+    direction from the hole). Works under `jit`, `vmap`, `grad`. A bad value is a
+    `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
+    """
+    if isinstance(order, bool) or not isinstance(order, int | np.integer) or order < 0:
+        raise ValueError(f"order={shown(order)} must be a whole number >= 0")
+    if jnp.shape(direction)[-1:] != (3,):
+        raise ValueError(
+            f"direction has shape {jnp.shape(direction)}: its last axis must hold 3 components"
+        )
+    direction = _checked_points(
+        "direction", direction, "a finite, non-zero 3-vector",
+        lambda x, xp: xp.any(~xp.isfinite(x), axis=-1) | xp.all(x == 0, axis=-1),
+    )  # fmt: skip
+    distance = _checked_points(
+        "distance", distance, "finite and > 1.5 (units of R_S: a camera outside the photon "
+        "sphere)", lambda x, xp: ~xp.isfinite(x) | ~(x > 1.5) | (x > 1e30),
+    )  # fmt: skip
+    source_distance = _checked_points(
+        "source_distance", source_distance, "> 1 (units of R_S: outside the horizon; inf: "
+        "at infinity)", lambda x, xp: xp.isnan(x) | ~(x > 1.0),
+    )  # fmt: skip
+    # Whether every source is at infinity (escape_angle's program only), none is (the
+    # finite crossings' only), or that is not known here (both, each where it applies).
+    c = concrete(source_distance)
+    inf = None if c is None else np.isinf(np.asarray(c, float))
+    far = None if inf is None or (inf.any() and not inf.all()) else bool(inf.all())
+    return _point_source_images_at(direction, distance, source_distance, order=int(order),
+                                   far=far)  # fmt: skip
+
+
+@eqx.filter_jit
+def _point_source_images_at(direction, distance, source_distance, *, order: int, far):
+    n = jnp.asarray(direction, jnp.result_type(float, direction))
+    dtype = n.dtype
+    rho = jnp.sqrt(n[..., 0] ** 2 + n[..., 1] ** 2)
+    theta = jnp.arctan2(rho, n[..., 2])
+    beta = jnp.arctan2(n[..., 1], n[..., 0])
+    d = jnp.broadcast_to(jnp.asarray(distance, dtype), theta.shape)
+    r = jnp.broadcast_to(jnp.asarray(source_distance, dtype), theta.shape)
+    alpha, mu = _images_at(theta, d, r, order, far)
+    return LensedImages(alpha, jnp.stack([beta, beta + jnp.pi]), mu, theta)

@@ -21,55 +21,60 @@ def reference_crossings(alpha: float, distance: float, radius: float, dps: int =
     du / sqrt(P) at `dps` digits; at a turning point u_t the substitution
     u = u_t -+ s^2 removes the square-root singularity. Shares no code with jaxlens."""
     with mp.workdps(dps):
-        a, d, r = mp.mpf(alpha), mp.mpf(distance), mp.mpf(radius)
-        u0, ur = 1 / d, 1 / r
-        b = d * abs(mp.sin(a)) / mp.sqrt(1 - u0)
-        c = 1 / b**2
-        p = lambda u: c - u**2 + u**3  # noqa: E731
-        inward = mp.cos(a) > 0
-        roots = mp.polyroots([c, 0, -1, 1], maxsteps=400, extraprec=4 * dps, asc=True)
-        real = sorted(mp.re(x) for x in roots if abs(mp.im(x)) < mp.mpf(10) ** (-dps + 5))
+        return [float(x) for x in mp_crossings(mp.mpf(alpha), mp.mpf(distance), mp.mpf(radius))]
 
-        def plain(lo, hi):
-            return mp.quad(lambda u: 1 / mp.sqrt(p(u)), [lo, hi])
 
-        if len(real) == 3 and u0 <= real[1]:  # outside the photon sphere: u in [0, u2]
-            u1, u2, u3 = real
+def mp_crossings(a, d, r):
+    """`reference_crossings` at the working precision, for mpf arguments: mpf values."""
+    dps = mp.mp.dps
+    u0, ur = 1 / d, 1 / r
+    b = d * abs(mp.sin(a)) / mp.sqrt(1 - u0)
+    c = 1 / b**2
+    p = lambda u: c - u**2 + u**3  # noqa: E731
+    inward = mp.cos(a) > 0
+    roots = mp.polyroots([c, 0, -1, 1], maxsteps=400, extraprec=4 * dps, asc=True)
+    real = sorted(mp.re(x) for x in roots if abs(mp.im(x)) < mp.mpf(10) ** (-dps + 5))
 
-            def to_turn(u):  # int_u^u2, u = u2 - s^2
-                g = lambda s: 2 / mp.sqrt((u2 - s * s - u1) * (u3 - u2 + s * s))  # noqa: E731
-                return mp.quad(g, [0, mp.sqrt(u2 - u)])
+    def plain(lo, hi):
+        return mp.quad(lambda u: 1 / mp.sqrt(p(u)), [lo, hi])
 
-            out = []
-            if inward:
-                if u0 < ur <= u2:
-                    out.append(to_turn(u0) - to_turn(ur))
-                if ur <= u2:
-                    out.append(to_turn(u0) + to_turn(ur))
-            elif ur < u0:
-                out.append(to_turn(ur) - to_turn(u0))
-            return [float(x) for x in out]
-        if len(real) == 3:  # inside: u in [u3, 1]
-            u1, u2, u3 = real
+    if len(real) == 3 and u0 <= real[1]:  # outside the photon sphere: u in [0, u2]
+        u1, u2, u3 = real
 
-            def to_turn(u):  # int_u3^u, u = u3 + s^2
-                g = lambda s: 2 / mp.sqrt((u3 + s * s - u1) * (u3 + s * s - u2))  # noqa: E731
-                return mp.quad(g, [0, mp.sqrt(u - u3)])
+        def to_turn(u):  # int_u^u2, u = u2 - s^2
+            g = lambda s: 2 / mp.sqrt((u2 - s * s - u1) * (u3 - u2 + s * s))  # noqa: E731
+            return mp.quad(g, [0, mp.sqrt(u2 - u)])
 
-            out = []
-            if not inward:
-                if u3 <= ur < u0:
-                    out.append(to_turn(u0) - to_turn(ur))
-                if u3 <= ur < 1:
-                    out.append(to_turn(u0) + to_turn(ur))
-            elif u0 < ur < 1:
-                out.append(to_turn(ur) - to_turn(u0))
-            return [float(x) for x in out]
-        if inward and u0 < ur < 1:
-            return [float(plain(u0, ur))]
-        if not inward and ur < u0:
-            return [float(plain(ur, u0))]
-        return []
+        out = []
+        if inward:
+            if u0 < ur <= u2:
+                out.append(to_turn(u0) - to_turn(ur))
+            if ur <= u2:
+                out.append(to_turn(u0) + to_turn(ur))
+        elif ur < u0:
+            out.append(to_turn(ur) - to_turn(u0))
+        return out
+    if len(real) == 3:  # inside: u in [u3, 1]
+        u1, u2, u3 = real
+
+        def to_turn(u):  # int_u3^u, u = u3 + s^2
+            g = lambda s: 2 / mp.sqrt((u3 + s * s - u1) * (u3 + s * s - u2))  # noqa: E731
+            return mp.quad(g, [0, mp.sqrt(u - u3)])
+
+        out = []
+        if not inward:
+            if u3 <= ur < u0:
+                out.append(to_turn(u0) - to_turn(ur))
+            if u3 <= ur < 1:
+                out.append(to_turn(u0) + to_turn(ur))
+        elif u0 < ur < 1:
+            out.append(to_turn(ur) - to_turn(u0))
+        return out
+    if inward and u0 < ur < 1:
+        return [plain(u0, ur)]
+    if not inward and ur < u0:
+        return [plain(ur, u0)]
+    return []
 
 
 _crossings = jax.jit(radius_crossings)
@@ -221,3 +226,126 @@ def test_einstein_ring_of_a_source_at_a_finite_distance():
     assert round(finite / arcsec, 3) == 1.158 and round(infinite / arcsec, 3) == 1.638
     np.testing.assert_allclose(finite, math.sqrt(2 * d / (d * 2 * d)), rtol=1e-4)
     np.testing.assert_allclose(infinite, math.sqrt(2 / d), rtol=1e-4)
+
+
+SGR_A = 8.5 * 3.0856775814913673e19 / (2.8e6 * 2953.25)  # 8.5 kpc in R_S of 2.8e6 M_sun
+
+
+def mp_image(theta, distance, radius, order, side, alpha, dps=50):
+    """An image of a source at angle `theta` from +z on the sphere r = `radius` (inf:
+    at infinity), by mpmath, near the local angle `alpha`: the crossing azimuth there
+    and its derivative (`mp.diff`) give, by Newton steps in mpmath's precision, the
+    angle where it is (2 order + 1) pi -+ theta (`side` 0: the source's side), and the
+    signed magnification sin(alpha) / (sin(v) dv/dalpha), v the source's flat-space
+    angle from the camera. Returns (alpha, mu) as floats."""
+    with mp.workdps(dps):
+        d, th = mp.mpf(distance), mp.mpf(theta)
+        r = None if math.isinf(radius) else mp.mpf(radius)
+        target = (2 * order + 1) * mp.pi + (th if side else -th)
+
+        def phi(a):  # the crossing nearest the target
+            got = mp_crossings(a, d, mp.mpf(10) ** (dps + 10) if r is None else r)
+            return min(got, key=lambda x: abs(x - target))
+
+        def flat(p):
+            if r is None:
+                return mp.atan2(mp.sin(p), -mp.cos(p))
+            return mp.atan2(r * mp.sin(p), d - r * mp.cos(p))
+
+        a = mp.mpf(alpha)
+        for _ in range(2):  # the derivative at the root itself: it goes as 1/(a - a_sh)
+            dphi = mp.diff(phi, a)
+            a = a - (phi(a) - target) / dphi
+        dphi = mp.diff(phi, a)
+        mu = mp.sin(a) / (mp.sin(flat(target)) * mp.diff(flat, target) * dphi)
+        return float(a), float(mu)
+
+
+@pytest.mark.parametrize(
+    ("distance", "radius", "theta", "order"),
+    [
+        (20.0, 50.0, 0.5, 0),  # the source beyond the camera's radius
+        (20.0, 10.0, 0.3, 0),  # inside the camera's radius, outside the photon sphere
+        (20.0, 10.0, 0.3, 2),
+        (20.0, 1.2, 1.0, 0),  # inside the photon sphere: the captured rays' first crossing
+        (20.0, 3.0, 2.8, 0),  # in front of the hole, nearly between it and the camera
+        (1e4, 1e4, 1e-3, 0),  # weak field, the source as far behind as the camera before
+        (20.0, math.inf, 0.5, 3),
+        # Sgr A* (2.8e6 M_sun at 8.5 kpc), a star as far behind: the primary pair, and
+        # the fourth relativistic pair 1e-13 of the shadow angle off its edge.
+        (SGR_A, SGR_A, 1e-7, 0),
+        (SGR_A, SGR_A, 5.6e-7, 4),
+    ],
+)
+def test_point_images_at_a_finite_distance_match_mpmath(distance, radius, theta, order):
+    direction = np.array([math.sin(theta), 0.0, math.cos(theta)])
+    got = jl.point_source_images_at(direction, distance, radius, order=order)
+    # The source's angle enters as (2 order + 1) pi -+ theta: it keeps eps (2 order + 1)
+    # pi / theta of its relative accuracy (4e-9 at theta = 1e-7), which bounds the
+    # magnification's; the position moves by at most that absolute amount.
+    floor = np.spacing((2 * order + 1) * math.pi)
+    for side in (0, 1):
+        a = float(got.alpha[side])
+        want_a, want_mu = mp_image(theta, distance, radius, order, side, a)
+        assert abs(a - want_a) <= 1e-12 * want_a + floor, (side, a, want_a)
+        mu = float(got.magnification[side])
+        tol = 1e-8 + 10.0 * floor / theta
+        assert abs(mu - want_mu) <= tol * abs(want_mu), (side, mu, want_mu)
+
+
+def test_point_images_at_infinity_agree_with_the_ray_map():
+    # The table's images (point_source_images) within its own accuracy, every order
+    # the exact solve's.
+    d = 20.0
+    th = np.array([0.01, 0.1, 0.5, 1.0, 2.0, 3.0])
+    direction = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], axis=-1)
+    table = jl.RayMap.build(d)
+    for order, mu_tol in ((0, 1e-9), (1, 1e-8), (2, 1e-5)):
+        exact = jl.point_source_images_at(direction, d, np.inf, order=order)
+        tab = jl.point_source_images(direction, table, order=order)
+        np.testing.assert_allclose(exact.alpha, tab.alpha, rtol=1e-12)
+        np.testing.assert_allclose(exact.beta, tab.beta, rtol=0, atol=0)
+        np.testing.assert_allclose(exact.magnification, tab.magnification, rtol=mu_tol)
+
+
+def _derivatives_match_differences(fn, d, r, rtol):
+    """`jax.jacfwd` of `fn(d, r)` (a tuple of scalars) against central differences."""
+    jac = jax.jit(jax.jacfwd(fn, argnums=(0, 1)))(d, r)
+    f = jax.jit(fn)
+    for i, (hd, hr) in enumerate(((1e-5, 0.0), (0.0, 1e-5))):
+        up, dn = f(d + hd, r + hr), f(d - hd, r - hr)
+        for k in range(len(up)):
+            fd = (float(up[k]) - float(dn[k])) / 2e-5
+            assert abs(float(jac[k][i]) - fd) <= rtol * abs(fd), (k, i, float(jac[k][i]), fd)
+
+
+def test_point_images_at_gradients_and_bad_values():
+    direction = jnp.array([0.3, 0.1, 0.9])
+    # The images' positions: first derivatives through the root (implicit function).
+    _derivatives_match_differences(
+        lambda d, r: tuple(jl.point_source_images_at(direction, d, r, order=1).alpha),
+        20.0, 10.0, 1e-6,
+    )  # fmt: skip
+    # Refused by name eagerly, and under jit (one program for the three).
+    jitted = jax.jit(jl.point_source_images_at)
+    for kwargs, name in (
+        (dict(distance=1.2), "distance"),
+        (dict(source_distance=1.0), "source_distance"),
+        (dict(source_distance=np.nan), "source_distance"),
+    ):
+        args = dict(distance=20.0, source_distance=10.0) | kwargs
+        with pytest.raises(ValueError, match=name):
+            jl.point_source_images_at(direction, args["distance"], args["source_distance"])
+        with pytest.raises(Exception, match=name):
+            jitted(direction, args["distance"], args["source_distance"]).alpha.block_until_ready()
+    with pytest.raises(ValueError, match="direction"):
+        jl.point_source_images_at(np.zeros(3), 20.0, 10.0)
+
+
+@pytest.mark.benchmark  # ~60 s: the second derivatives of the closed form compile slowly
+def test_point_images_at_magnification_derivatives():
+    direction = jnp.array([0.3, 0.1, 0.9])
+    _derivatives_match_differences(
+        lambda d, r: tuple(jl.point_source_images_at(direction, d, r, order=1).magnification),
+        20.0, 10.0, 1e-5,
+    )  # fmt: skip
