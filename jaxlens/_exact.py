@@ -220,6 +220,41 @@ def small_b_integral(x, y, dxy, b):
     return b * (dxy - 0.5 * b * b * ((x**4 - y**4) / 4.0 - (x**3 - y**3) / 3.0))
 
 
+def _ray_start(alpha, distance, kappa=None):
+    """What every closed form here reads of a ray at the camera: `(u0, omu0, e0, sa, ca,
+    root, b, inward, small, sa_, b_, kappa)`: $u_0 = 1/D$, $1 - u_0$ and $u_0 - 2/3$
+    without cancellation, $|\sin\alpha|$, $\cos\alpha$, $u_0\sqrt{1 - u_0}$, the
+    impact parameter $b$, whether the ray moves inward, whether $b$ is small (the
+    series' branch), $\sin\alpha$ and $b$ sanitised there (so no inf/NaN reaches any
+    gradient) and $\kappa = 1 - b_c^2/b^2$ (`kappa` where the caller has it more
+    accurately: `kappa_from_offset`)."""
+    u0 = 1.0 / distance
+    omu0 = (distance - 1.0) / distance  # 1 - u0 without cancellation next to the horizon
+    # u0 - 2/3: exact near D = 1.5 in the first form, which overflows (3 D) for a far
+    # camera, where the second loses nothing.
+    e0 = jnp.where(distance < 4.0, (3.0 - 2.0 * distance) / (3.0 * distance), u0 - 2.0 / 3.0)
+    sa, ca = jnp.abs(jnp.sin(alpha)), jnp.cos(alpha)
+    root = u0 * jnp.sqrt(omu0)
+    b = sa / root
+    inward = ca > 0
+    b_small = 1e-3 if alpha.dtype == jnp.float64 else 1e-2
+    small = b < b_small
+    # Sanitised inputs for the other branches, so no inf/NaN reaches any gradient.
+    sa_ = jnp.where(small, 1.0, sa)
+    b_ = jnp.where(small, 1.0, b)
+    if kappa is None:
+        # kappa = 1 - b_c^2 / b^2 in whichever of two forms loses less: through b, or
+        # as (A - cos^2 alpha) / sin^2 alpha with A = (3u0 - 2)^2 (3u0 + 1) / 4, whose
+        # two small parts cancel exactly for a camera near the photon sphere.
+        a_ps = (3.0 * e0) ** 2 * (3.0 * u0 + 1.0) / 4.0
+        use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
+        kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
+        # Each factor divided by b on its own: b^2 overflows for far cameras (b ~ D).
+        kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
+        kappa = jnp.where(use_e, kappa_e, kappa_b)
+    return u0, omu0, e0, sa, ca, root, b, inward, small, sa_, b_, kappa
+
+
 def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float = 10.0,
                  _kappa=None):  # fmt: skip
     """Exact escape angle of rays from a static camera, via Carlson's $R_F$.
@@ -241,29 +276,9 @@ def escape_angle(alpha, distance, *, iterations: int = 12, max_windings: float =
     # gives it (from the offset to the shadow's edge, `kappa_from_offset`).
     alpha, distance = jnp.broadcast_arrays(alpha, distance)
     dtype = alpha.dtype
-    u0 = 1.0 / distance
-    omu0 = (distance - 1.0) / distance  # 1 - u0 without cancellation next to the horizon
-    # u0 - 2/3: exact near D = 1.5 in the first form, which overflows (3 D) for a far
-    # camera, where the second loses nothing.
-    e0 = jnp.where(distance < 4.0, (3.0 - 2.0 * distance) / (3.0 * distance), u0 - 2.0 / 3.0)
-    sa, ca = jnp.abs(jnp.sin(alpha)), jnp.cos(alpha)
-    root = u0 * jnp.sqrt(omu0)
-    b = sa / root
-    inward = ca > 0
-    b_small = 1e-3 if dtype == jnp.float64 else 1e-2
-    small = b < b_small
-    # Sanitised inputs for the other branches, so no inf/NaN reaches any gradient.
-    sa_ = jnp.where(small, 1.0, sa)
-    b_ = jnp.where(small, 1.0, b)
-    # kappa = 1 - b_c^2 / b^2 in whichever of two forms loses less: through b, or
-    # as (A - cos^2 alpha) / sin^2 alpha with A = (3u0 - 2)^2 (3u0 + 1) / 4, whose
-    # two small parts cancel exactly for a camera near the photon sphere.
-    a_ps = (3.0 * e0) ** 2 * (3.0 * u0 + 1.0) / 4.0
-    use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
-    kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
-    # Each factor divided by b on its own: b^2 overflows for far cameras (b ~ D).
-    kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
-    kappa = jnp.where(use_e, kappa_e, kappa_b) if _kappa is None else _kappa
+    u0, omu0, e0, sa, ca, root, b, inward, small, sa_, b_, kappa = _ray_start(
+        alpha, distance, _kappa
+    )
     turning = (kappa > 0) & ~small
     # Signed du/dphi at the camera: sqrt(G(u0)) = u0 sqrt(1 - u0) cot(alpha).
     sg = root * ca / sa_
@@ -430,27 +445,14 @@ def finite_crossings(alpha, distance, rr, *, iterations: int = 12, max_windings:
     own program, without `escape_angle`'s for the sky at infinity."""
     alpha, distance, rr = jnp.broadcast_arrays(alpha, distance, rr)
     dtype = alpha.dtype
-    u0, ur = 1.0 / distance, 1.0 / rr
-    # u_R - u0 and the points' offsets from 2/3, each without cancellation (as
-    # `escape_angle`'s e0).
-    d_ur = (distance - rr) / (distance * rr)
-    e0 = jnp.where(distance < 4.0, (3.0 - 2.0 * distance) / (3.0 * distance), u0 - 2.0 / 3.0)
-    er = jnp.where(rr < 4.0, (3.0 - 2.0 * rr) / (3.0 * rr), ur - 2.0 / 3.0)
-    omu0 = (distance - 1.0) / distance
-    sa, ca = jnp.abs(jnp.sin(alpha)), jnp.cos(alpha)
-    root = u0 * jnp.sqrt(omu0)
-    b = sa / root
-    inward = ca > 0  # u grows along the ray
-    b_small = 1e-3 if dtype == jnp.float64 else 1e-2
-    small = b < b_small
-    sa_ = jnp.where(small, 1.0, sa)
-    b_ = jnp.where(small, 1.0, b)
-    a_ps = (3.0 * e0) ** 2 * (3.0 * u0 + 1.0) / 4.0
-    use_e = jnp.maximum(a_ps, ca * ca) < sa * sa
-    kappa_e = jnp.where(use_e, a_ps - ca * ca, 0.0) / jnp.where(use_e, sa_ * sa_, 1.0)
-    kappa_b = ((b_ - B_CRIT) / b_) * ((b_ + B_CRIT) / b_)
-    kappa = jnp.where(use_e, kappa_e, kappa_b) if _kappa is None else _kappa
+    u0, omu0, e0, sa, ca, root, b, inward, small, sa_, b_, kappa = _ray_start(
+        alpha, distance, _kappa
+    )
     turning = (kappa > 0) & ~small
+    ur = 1.0 / rr
+    # u_R - u0 and u_R - 2/3, each without cancellation (as e0).
+    d_ur = (distance - rr) / (distance * rr)
+    er = jnp.where(rr < 4.0, (3.0 - 2.0 * rr) / (3.0 * rr), ur - 2.0 / 3.0)
     sg = jnp.abs(root * ca / sa_)  # sqrt(P(u0)) = u0 sqrt(1 - u0) |cot alpha|
     forward = jnp.where(inward, d_ur > 0, d_ur < 0)  # R lies ahead of the camera
 

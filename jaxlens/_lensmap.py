@@ -143,6 +143,22 @@ class LensedImages(eqx.Module):
         return x + 0.5 * camera.width, 0.5 * camera.height - y
 
 
+def _checked_source(order, direction):
+    """`(order, direction)` checked: a whole `order` >= 0 (a `ValueError` else), and
+    `direction (..., 3)` finite and non-zero (`_checked_points`)."""
+    if isinstance(order, bool) or not isinstance(order, int | np.integer) or order < 0:
+        raise ValueError(f"order={shown(order)} must be a whole number >= 0")
+    if jnp.shape(direction)[-1:] != (3,):
+        raise ValueError(
+            f"direction has shape {jnp.shape(direction)}: its last axis must hold 3 components"
+        )
+    direction = _checked_points(
+        "direction", direction, "a finite, non-zero 3-vector",
+        lambda x, xp: xp.any(~xp.isfinite(x), axis=-1) | xp.all(x == 0, axis=-1),
+    )  # fmt: skip
+    return int(order), direction
+
+
 def point_source_images(
     direction: Float[Array, "... 3"], ray_map: RayMap, *, order: int = 0
 ) -> LensedImages:
@@ -158,18 +174,8 @@ def point_source_images(
     **Returns:** `LensedImages`. Works under `jit`, `vmap`, `grad`. A bad value is a
     `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
     """
-    if isinstance(order, bool) or not isinstance(order, int | np.integer) or order < 0:
-        raise ValueError(f"order={shown(order)} must be a whole number >= 0")
-    ray_map = _checked_map(ray_map)
-    if jnp.shape(direction)[-1:] != (3,):
-        raise ValueError(
-            f"direction has shape {jnp.shape(direction)}: its last axis must hold 3 components"
-        )
-    direction = _checked_points(
-        "direction", direction, "a finite, non-zero 3-vector",
-        lambda x, xp: xp.any(~xp.isfinite(x), axis=-1) | xp.all(x == 0, axis=-1),
-    )  # fmt: skip
-    return _point_source_images(direction, ray_map, order=int(order))
+    order, direction = _checked_source(order, direction)
+    return _point_source_images(direction, _checked_map(ray_map), order=order)
 
 
 @eqx.filter_jit
@@ -351,16 +357,7 @@ def point_source_images_at(
     direction from the hole). Works under `jit`, `vmap`, `grad`. A bad value is a
     `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
     """
-    if isinstance(order, bool) or not isinstance(order, int | np.integer) or order < 0:
-        raise ValueError(f"order={shown(order)} must be a whole number >= 0")
-    if jnp.shape(direction)[-1:] != (3,):
-        raise ValueError(
-            f"direction has shape {jnp.shape(direction)}: its last axis must hold 3 components"
-        )
-    direction = _checked_points(
-        "direction", direction, "a finite, non-zero 3-vector",
-        lambda x, xp: xp.any(~xp.isfinite(x), axis=-1) | xp.all(x == 0, axis=-1),
-    )  # fmt: skip
+    order, direction = _checked_source(order, direction)
     distance = _checked_points(
         "distance", distance, "finite and > 1.5 (units of R_S: a camera outside the photon "
         "sphere)", lambda x, xp: ~xp.isfinite(x) | ~(x > 1.5) | (x > 1e30),
@@ -374,8 +371,7 @@ def point_source_images_at(
     c = concrete(source_distance)
     inf = None if c is None else np.isinf(np.asarray(c, float))
     far = None if inf is None or (inf.any() and not inf.all()) else bool(inf.all())
-    return _point_source_images_at(direction, distance, source_distance, order=int(order),
-                                   far=far)  # fmt: skip
+    return _point_source_images_at(direction, distance, source_distance, order=order, far=far)
 
 
 @eqx.filter_jit
