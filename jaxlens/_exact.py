@@ -223,10 +223,10 @@ def small_b_integral(x, y, dxy, b):
 def _ray_start(alpha, distance, kappa=None):
     """What every closed form here reads of a ray at the camera: `(u0, omu0, e0, sa, ca,
     root, b, inward, small, sa_, b_, kappa)`: $u_0 = 1/D$, $1 - u_0$ and $u_0 - 2/3$
-    without cancellation, $|\sin\alpha|$, $\cos\alpha$, $u_0\sqrt{1 - u_0}$, the
+    without cancellation, $|\\sin\\alpha|$, $\\cos\\alpha$, $u_0\\sqrt{1 - u_0}$, the
     impact parameter $b$, whether the ray moves inward, whether $b$ is small (the
-    series' branch), $\sin\alpha$ and $b$ sanitised there (so no inf/NaN reaches any
-    gradient) and $\kappa = 1 - b_c^2/b^2$ (`kappa` where the caller has it more
+    series' branch), $\\sin\\alpha$ and $b$ sanitised there (so no inf/NaN reaches any
+    gradient) and $\\kappa = 1 - b_c^2/b^2$ (`kappa` where the caller has it more
     accurately: `kappa_from_offset`)."""
     u0 = 1.0 / distance
     omu0 = (distance - 1.0) / distance  # 1 - u0 without cancellation next to the horizon
