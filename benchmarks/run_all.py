@@ -28,6 +28,7 @@ def main(argv=None):
             "scaling",
             "scaling_processes",
             "speedup",
+            "source_distance",
             "bench_render",
             "bench_effects",
             "bench_fit",
@@ -39,6 +40,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     plan = {
         "speedup": ["--rays", "200000"] if args.quick else [],
+        "source_distance": ["--rays", "200000"] if args.quick else [],
         "accuracy_ladder": ["--quick"] if args.quick else [],
         "scaling": ["--quick"] if args.quick else [],
         "scaling_processes": ["--rays", "1e6"] if args.quick else [],
