@@ -26,7 +26,13 @@ from jaxtyping import Array, ArrayLike, Float
 from . import _exact
 from ._camera import Camera, sky_direction
 from ._messages import shown
-from ._ray_inputs import DISTANCE_MESSAGE, check_distance, check_real, distance_bad
+from ._ray_inputs import (
+    DISTANCE_MESSAGE,
+    MAX_DISTANCE,
+    check_distance,
+    check_real,
+    distance_bad,
+)
 from ._raymap import RayMap
 from ._util import concrete
 
@@ -284,9 +290,9 @@ def _images_at(theta, d, r, order, far):
     alpha_sh = _exact.shadow_angle(d)
     # Where the ray's periapsis is r (a sphere inside the camera's radius and outside
     # the photon sphere): the two branches meet there.
-    rr = jnp.where(jnp.isfinite(r) & (r < d) & (r > 1.5), r, 2.0)
-    sin_r = jnp.clip((rr / d) * jnp.sqrt(rr / (rr - 1.0)) * jnp.sqrt((d - 1.0) / d), 0.0, 1.0)
     meet = jnp.isfinite(r) & (r < d) & (r > 1.5)
+    rr = jnp.where(meet, r, 2.0)
+    sin_r = jnp.clip((rr / d) * jnp.sqrt(rr / (rr - 1.0)) * jnp.sqrt((d - 1.0) / d), 0.0, 1.0)
     alpha_r = jnp.where(meet, jnp.arcsin(sin_r), alpha_sh)
     # After the turning point (or the only crossing, r >= d): from the edge up to the
     # meeting angle (r < d) or straight away (pi); the first crossing (r < d): down
@@ -360,7 +366,7 @@ def point_source_images_at(
     order, direction = _checked_source(order, direction)
     distance = _checked_points(
         "distance", distance, "finite and > 1.5 (units of R_S: a camera outside the photon "
-        "sphere)", lambda x, xp: ~xp.isfinite(x) | ~(x > 1.5) | (x > 1e30),
+        "sphere)", lambda x, xp: ~xp.isfinite(x) | ~(x > 1.5) | (x > MAX_DISTANCE),
     )  # fmt: skip
     source_distance = _checked_points(
         "source_distance", source_distance, "> 1 (units of R_S: outside the horizon; inf: "
