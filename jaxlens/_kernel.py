@@ -41,9 +41,10 @@ import numpy as np
 
 from . import _area, _disk, _effects, _limits
 from ._camera import view_angles
-from ._exact import shadow_angle
+from ._exact import finite_crossings, shadow_angle
 from ._fastmath import sin_cos
 from ._messages import cut
+from ._ray_inputs import _MAX_COMPARED, MAX_DISTANCE
 from ._sky import AbstractCompactSky, SkySum
 from ._sky._base import rgb_shift_power
 from ._trace import trace
@@ -120,6 +121,16 @@ def _checks(scene, xp, dtype=None):
         r_in, r_out = (xp.asarray(r).astype(dt) for r in (scene.disk.r_in, scene.disk.r_out))
         out.append((lambda s: s.disk.r_in, ~(r_in > 1.5) | ~(r_in < r_out) | ~xp.isfinite(r_out),
                     "disk radii must satisfy 1.5 < r_in < r_out < inf (units of R_S)"))  # fmt: skip
+    if scene.source_distance is not None:
+        r = xp.asarray(scene.source_distance).astype(dt)
+        out.append((lambda s: s.source_distance,
+                    ~xp.isfinite(r) | ~(r > 1.0) | (r > _MAX_COMPARED),
+                    f"source distance must be > 1 and at most {MAX_DISTANCE:g} (units of R_S; "
+                    "None for a sky at infinity)"))  # fmt: skip
+        if scene.disk is not None:
+            out.append((lambda s: s.source_distance, ~(r >= d) | ~(r >= r_out),
+                        "a Disk needs the source sphere outside the camera and the disk: "
+                        "source_distance >= distance and >= r_out (units of R_S)"))  # fmt: skip
     return out
 
 
@@ -182,10 +193,14 @@ def _to_static(scene, alpha, cb, sb):
 
 
 def _frequency_ratio(scene, doppler, like):
-    """The camera's frequency ratio $g$ for light from infinity, `like`'s shape: the
-    static observer's blueshift times the Doppler factor of a moving camera (`doppler`,
-    `None` for a static one)."""
+    """The camera's frequency ratio $g$ for light from the sky, `like`'s shape: the
+    static observer's blueshift for light from infinity, times $\\sqrt{1 - 1/R}$ for a
+    sky on the sphere $r = R$ (`source_distance`), times the Doppler factor of a moving
+    camera (`doppler`, `None` for a static one)."""
     g = _effects.static_blueshift(scene.camera.distance).astype(like.dtype)
+    if scene.source_distance is not None:  # a static emitter at R: sqrt(1 - 1/R) of it
+        r = jnp.asarray(scene.source_distance).astype(like.dtype)
+        g = g * jnp.sqrt((r - 1.0) / r)
     return jnp.broadcast_to(g if doppler is None else g * doppler, like.shape)
 
 
@@ -226,9 +241,40 @@ def _geometry(scene, plan, ray_map, x, y):
         else:
             alpha_sh = shadow_angle(cam.distance).astype(dt)
         cover, edge = coverage(alpha, alpha_sh, width)
-        phi = _escape_angle(scene, plan, ray_map, edge)
+        if scene.source_distance is not None:
+            phi, cover = _shell_crossings(scene, alpha, cover, edge)
+            if g is not None:
+                g = jnp.broadcast_to(g, phi.shape)
+        else:
+            phi = _escape_angle(scene, plan, ray_map, edge)
     sin_phi, cos_phi = sin_cos(phi)
     return sin_phi, cos_phi, cb, sb, cover, g, alpha
+
+
+def _shell_crossings(scene, alpha, cover, edge):
+    """The crossings of the sky's sphere $r = R$ (`scene.source_distance`) by the rays
+    of static-frame angles `alpha`, and the weight of each in its sample.
+
+    A sample wholly outside or inside the shadow (`cover` 1 or 0) takes the crossings
+    of its own ray, each with weight 1 (the sphere is transparent: every crossing adds
+    its radiance). A sample on the shadow's edge (`cover` in (0, 1)) takes those of
+    its escaping part's centre (`edge`): a crossing on the way in ($R < D$, before the
+    periapsis) is shared by the captured part of its footprint, weight 1; one after the
+    periapsis (the second for $R < D$, the only one for $R \\ge D$) is seen by the
+    escaping part alone, weight `cover`.
+
+    **Returns:** `(phi, weight)`, each of shape `(2,) + alpha.shape`: the azimuths swept
+    from the camera to the first and second crossing (radians) and their weights (0
+    where the ray has no such crossing, or winds past the budget).
+    """
+    dt = alpha.dtype
+    d = scene.camera.distance.astype(dt)
+    r = jnp.asarray(scene.source_distance).astype(dt)
+    ramp = cover > 0.0
+    first, second, count = finite_crossings(jnp.where(ramp, edge, alpha), d, r)
+    w1 = jnp.where(ramp & ~(r < d), cover, 1.0) * (count >= 1)
+    w2 = jnp.where(ramp, cover, 1.0) * (count >= 2)
+    return jnp.stack([first, second]), jnp.stack([w1, w2]).astype(dt)
 
 
 def _symmetric(scene, plan, ray_map, row0, rows: int, pair: bool):
@@ -251,10 +297,11 @@ def _symmetric(scene, plan, ray_map, row0, rows: int, pair: bool):
     # Materialise the half before mirroring: XLA would otherwise fuse the map look-up
     # into every consumer of the mirrored arrays and repeat it.
     per_ray = jax.lax.optimization_barrier(per_ray)
-    per_ray = [jnp.concatenate([a[:, odd:][:, ::-1], a], axis=1) for a in per_ray]
+    # (The arrays of a sky on a sphere lead with an axis of its two crossings.)
+    per_ray = [jnp.concatenate([a[..., odd:][..., ::-1], a], axis=-1) for a in per_ray]
 
     if pair:  # the mirror rows: the same rays, y negated
-        per_ray = [jnp.concatenate([a, a[::-1]], axis=0) for a in per_ray]
+        per_ray = [jnp.concatenate([a, a[..., ::-1, :]], axis=-2) for a in per_ray]
         ys = jnp.concatenate([ys, -ys[::-1]])
     s, c, cover = per_ray[:3]
     g = per_ray[3] if g is not None else None
@@ -581,12 +628,18 @@ def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False, check: bool
         scene = checked(scene)
     cam = scene.camera
     k, w = cam.supersample, cam.width
+    shell = scene.source_distance is not None
     if plan.symmetric:
         n, cover, g = _symmetric(scene, plan, ray_map, row0, rows, pair)
         rad = _radiance(scene, plan, n, g) * cover[..., None]
+        if shell:  # the radiance of every crossing of the sky's sphere adds
+            rad = jnp.sum(rad, axis=0)
         return _average(rad, 2 * rows if pair else rows, w, k)
     n, cover, g, rays = _general(scene, plan, ray_map, row0, rows)
     rad = _radiance(scene, plan, n, g) * cover[..., None]
+    if shell:
+        rad = jnp.sum(rad, axis=0)
+        g = None if g is None else g[0]
     if plan.disk:
         with jax.named_scope("jaxlens.disk"):
             rad = _apply_disk(scene, plan, rad, rays, g)

@@ -11,7 +11,9 @@ concrete) its values:
   distance); the weak-field series where every ray in view has its periapsis far out
   and the series' rigorous truncation bound is below the accuracy (and the view is
   small enough that the table's build is not amortised); or `"trace"`, the exact
-  closed form per ray, when the scene forces it. A scene that forces `"weak_field"`
+  closed form per ray, when the scene forces it; for a sky on a sphere
+  (`Scene.source_distance`), `"crossings"`: each ray's crossings of it, exact per ray.
+  A scene that forces `"weak_field"`
   keeps its accuracy: where the series' bound over the view is not below it (or cannot
   be computed, the camera's values traced), `plan` raises a `ValueError` with the bound
   and what to do instead.
@@ -47,7 +49,9 @@ class Plan:
     """What the renderer compiles for a scene (hashable: it keys the compiled program).
 
     **Fields:**
-    - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$).
+    - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$), or
+      `"crossings"` (a sky on a sphere, `Scene.source_distance`: the exact crossings of
+      it per ray).
     - `aberration`: `None`, `"radial"` or `"boost"`; `redshift`: `None`,
       `"bolometric"` or `"spectral"`; `disk`: whether disk rays are traced.
     - `disk_rays`: rays a block follows through the disk plane (`None`: all, masked);
@@ -254,6 +258,7 @@ def _plan(scene, chunk_samples):
     else:
         reasons.append(
             f"Redshift({redshift!r}): g = 1/sqrt(1 - 1/D)"
+            + (" x sqrt(1 - 1/R)" if scene.source_distance is not None else "")
             + (" x Doppler factor" if scene.motion is not None else "")
         )
     centred, at_origin = cam.is_centred(), cam.at_origin()
@@ -295,7 +300,26 @@ def _plan(scene, chunk_samples):
                 b["frames"], b["rows"], b["pair"], b["blocks"], b["samples"], None, ())  # fmt: skip
 
     weak_bound = None
-    if gauss:
+    if scene.source_distance is not None:
+        if gauss:
+            raise ValueError(
+                'sampling="gauss" does not support a source_distance yet (its thin rings '
+                'solve the ray map at infinity): render with sampling="uniform"'
+            )
+        if scene.method not in ("auto", "trace"):
+            raise ValueError(
+                f"method={scene.method!r} has no form for a sky at a finite source_distance "
+                "(the ray map and the weak-field series give the escape angle at infinity): "
+                "use method='auto' or 'trace'"
+            )
+        geometry = "crossings"
+        reasons.append(
+            "source_distance: the sky lies on the sphere r = R, each ray's crossings of it "
+            "(up to 2, their radiance added) from the exact closed form per ray "
+            "(finite_crossings): it costs about escape_angle's, and a table per (D, R) is "
+            "not built (benchmarks/results/source_distance.md)"
+        )
+    elif gauss:
         geometry = "table"
     elif scene.method == "weak_field":
         geometry = "weak_field"

@@ -59,12 +59,15 @@ import tomllib
 from pathlib import Path
 
 import equinox as eqx
+import jax
+import numpy as np
 
 from . import _schema
 from ._camera import MAX_SIDE, MAX_SUPERSAMPLE, SAMPLINGS, Camera
 from ._disk import Disk
 from ._effects import AbstractMotion, Redshift
-from ._messages import cut, describe
+from ._messages import cut, describe, shown
+from ._ray_inputs import MAX_DISTANCE, check_real
 from ._schema import (
     ANIMATION_PATHS as ANIMATION_PATHS,
     ANIMATION_RANGES as ANIMATION_RANGES,
@@ -76,7 +79,7 @@ from ._schema import (
     in_range,
 )
 from ._sky import AbstractSky
-from ._util import concrete
+from ._util import as_float, concrete
 
 METHODS = ("auto", "table", "weak_field", "trace")
 
@@ -287,6 +290,33 @@ def _sky_of(layers: list[dict]) -> AbstractSky:
     return sky
 
 
+SOURCE_DISTANCE_RANGE = (
+    f"> 1 and at most {MAX_DISTANCE:g} (units of R_S: outside the horizon; None or inf "
+    "for a sky at infinity)"
+)
+
+
+def _source_distance(r):
+    """`Scene.source_distance` as given: `None` (or a concrete `inf`) for the sky at
+    infinity, else a float array of shape `()` checked where concrete: $1 < R \\le$
+    `MAX_DISTANCE` (units of R_S), a `ValueError` naming the value otherwise."""
+    if r is None:
+        return None
+    r = check_real("source_distance", r)
+    c = concrete(r)
+    if c is not None:
+        c = np.asarray(c, np.float64)
+        if c.shape != ():
+            raise ValueError(f"source_distance has shape {c.shape}: it must be one number "
+                             "(units of R_S)")  # fmt: skip
+        if np.isinf(c) and c > 0:
+            return None
+        if not (c > 1.0 and c <= MAX_DISTANCE):
+            raise ValueError(f"source_distance={shown(c)} is not valid: it must be "
+                             + SOURCE_DISTANCE_RANGE)  # fmt: skip
+    return as_float(r)
+
+
 def _camera_of(cam: dict, *, dtype=None) -> Camera:
     rad = math.radians
     return Camera(
@@ -295,6 +325,25 @@ def _camera_of(cam: dict, *, dtype=None) -> Camera:
         azimuth=rad(cam["azimuth_deg"]), elevation=rad(cam["elevation_deg"]),
         supersample=cam["supersample"], sampling=cam["sampling"], dtype=dtype,
     )  # fmt: skip
+
+
+def check_disk_shell(scene) -> None:
+    """A `ValueError` when a scene's disk and its sky's sphere ($R$ = `source_distance`)
+    are both concrete and the sphere is not outside both the camera and the disk
+    ($R \\ge D$ and $R \\ge r_{out}$): only then does every ray cross the sphere after
+    any disk crossing, so that the opaque disk hides what lies behind it exactly."""
+    r = concrete(scene.source_distance)
+    d = concrete(scene.camera.distance)
+    r_out = concrete(scene.disk.r_out)
+    if r is None or d is None or r_out is None:
+        return
+    if not (np.all(r >= d) and np.all(r >= r_out)):
+        raise ValueError(
+            f"source_distance={shown(r)} with a Disk (r_out={shown(np.max(r_out))}) seen "
+            f"from distance={shown(np.max(d))}: a disk is supported with a source sphere "
+            "outside both the camera and the disk (source_distance >= distance and >= "
+            "r_out, units of R_S); see docs/limits.md"
+        )
 
 
 class Scene(eqx.Module):
@@ -308,6 +357,12 @@ class Scene(eqx.Module):
     - `motion`: `None` (a static camera), `CircularOrbit` or `RadialInfall`.
     - `redshift`: `None` (no frequency shift) or `Redshift(mode)`.
     - `disk`: `None` or a `Disk`.
+    - `source_distance`: `None` (the sky at infinity: a function of direction), or
+      the radius $R$ of a transparent emitting sphere about the hole that carries the
+      whole sky (units of R_S; $1 < R \\le 10^{30}$; a concrete `inf` is `None`). Each
+      ray's crossings of $r = R$ (at most two: inward, then outward after its
+      periapsis) add the sky's radiance in the direction from the hole to the
+      crossing point. An array leaf: differentiable, traced in a fit.
     - `accuracy` (static): the error allowed in the escape angle (radians).
     - `method` (static): `"auto"` (the plan chooses the source of the escape angle),
       or force `"table"`, `"weak_field"` or `"trace"`.
@@ -321,6 +376,7 @@ class Scene(eqx.Module):
     motion: AbstractMotion | None = None
     redshift: Redshift | None = None
     disk: Disk | None = None
+    source_distance: jax.Array | None = eqx.field(default=None, converter=_source_distance)
     accuracy: float = eqx.field(static=True, default=1e-8)
     method: str = eqx.field(static=True, default="auto")
     exposure: float = eqx.field(static=True, default=0.0)
@@ -344,6 +400,8 @@ class Scene(eqx.Module):
             d = concrete(self.camera.distance)
             if d is not None:
                 self.motion.check_distance(d)
+        if self.disk is not None and self.source_distance is not None:
+            check_disk_shell(self)
 
     def replace(self, **changes) -> "Scene":
         """A copy with the given fields replaced (e.g. `scene.replace(disk=None)`)."""

@@ -1,0 +1,157 @@
+"""A scene's sky on a sphere at a finite distance (`Scene(..., source_distance=R)`):
+`None` is the sky at infinity unchanged, a far sphere agrees with it, a star on the
+sphere is imaged where `point_source_images_at` puts it (beyond the camera, and inside
+its radius through the second crossing), the hard radii render finite, bad values are
+refused eagerly and under `jit`, and the redshift of a static emitter at R."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlens as jl
+
+D = 20.0
+SMOOTH = jl.GaussianStar(0.6, direction=(0.3, 0.2, 1.0)) + jl.Uniform(0.05)
+# One image size and sky structure for the renders: they share one compiled program
+# (the distances, the field of view and the sky's values are arguments).
+W, H, FOV = 96, 64, math.radians(90.0)
+
+
+def _camera(width=W, height=H, fov=FOV, k=2, **kw):
+    return jl.Camera(D, fov, width, height, supersample=k, **kw)
+
+
+def test_none_is_the_sky_at_infinity_bit_for_bit():
+    cam = _camera()
+    before, after = jl.Scene(cam, SMOOTH), jl.Scene(cam, SMOOTH, source_distance=None)
+    assert jax.tree.structure(before) == jax.tree.structure(after)
+    assert jl.plan(before) == jl.plan(after)
+    assert np.array_equal(jl.render(before), jl.render(after))  # bit for bit
+    # A concrete inf is the sky at infinity: the same structure, plan and program.
+    far = jl.Scene(cam, SMOOTH, source_distance=float("inf"))
+    assert far.source_distance is None
+    assert jl.plan(far).geometry == jl.plan(before).geometry != "crossings"
+
+
+def test_far_sphere_agrees_with_infinity_and_float32_works():
+    cam = _camera()
+    ref = jl.render(jl.Scene(cam, SMOOTH))
+    scene = jl.Scene(cam, SMOOTH, source_distance=1e12)
+    assert jl.plan(scene).geometry == "crossings"
+    far = jl.render(scene)
+    # At R = 1e12 a crossing's azimuth differs from the escape angle by ~b/R ~ 1e-11
+    # rad: the pixels agree to float32 output rounding, far below 1e-6 of the peak.
+    assert np.max(np.abs(far - ref)) <= 1e-6 * np.max(ref)
+    f32 = jl.render(scene, dtype="float32")
+    # float32 sky directions are good to ~1e-6 rad, the sky's slope ~1/sigma per rad,
+    # and the shadow-edge ramp moves by float32's share of a sample: 1e-3 of the peak.
+    assert np.all(np.isfinite(f32)) and np.max(np.abs(f32 - ref)) <= 1e-3 * np.max(ref)
+
+
+# A star 6 degrees off the axis behind the hole, on the sphere: each of its two
+# order-0 images must be the brightest pixel of its half of the image.
+THETA = math.radians(6.0)
+STAR_DIR = (math.sin(THETA), 0.0, math.cos(THETA))
+
+
+@pytest.mark.parametrize("radius", [40.0, 10.0])  # beyond the camera; inside its radius
+def test_star_on_the_sphere_is_imaged_where_point_source_images_at_says(radius):
+    sky = jl.GaussianStar(math.radians(0.7), direction=STAR_DIR) + jl.Uniform(0.0)
+    img = jl.render(jl.Scene(_camera(), sky, source_distance=radius))[..., 0]
+    images = jl.point_source_images_at(np.asarray(STAR_DIR), D, radius)
+    f = (W / 2) / math.tan(FOV / 2)
+    at_inf = jl.point_source_images_at(np.asarray(STAR_DIR), D)
+    for k in range(2):  # primary (right, beta = 0), secondary (left, beta = pi)
+        a, b = float(images.alpha[k]), float(images.beta[k])
+        col = f * math.tan(a) * math.cos(b) + W / 2 - 0.5
+        row = H / 2 - 0.5 - f * math.tan(a) * math.sin(b)
+        half = slice(W // 2, W) if math.cos(b) > 0 else slice(0, W // 2)
+        r, c = np.unravel_index(np.argmax(img[:, half]), (H, W // 2))
+        c += half.start
+        # Each image is an arc along its circle about the centre (tangentially
+        # stretched, |mu| 1.2-2.7), symmetric about the middle rows: the brightest
+        # pixel lies on the predicted circle, and on the middle rows the brightest
+        # column is the image's own; both within one pixel.
+        radius_px = math.hypot(c + 0.5 - W / 2, H / 2 - r - 0.5)
+        assert abs(radius_px - f * math.tan(a)) <= 1.0, (k, (c, r), (col, row))
+        middle = img[H // 2 - 1 : H // 2 + 1, half].max(axis=0)
+        assert abs(np.argmax(middle) + half.start - col) <= 1.0, (k, col)
+        # ... and the sphere moved it: the image at infinity lies >= 2 pixels away.
+        a_inf = float(at_inf.alpha[k])
+        assert abs(f * (math.tan(a_inf) - math.tan(a))) >= 2.0
+
+
+def test_hard_radii_render_finite():
+    cam = _camera(fov=math.radians(120.0))
+    # Inside the photon sphere (1.3), on it, through the camera, just beyond it, and
+    # R = 10, whose grazing rays (periapsis at R) lie in the view.
+    for radius in (1.3, 1.5, D, D * (1 + 1e-12), 10.0):
+        img = jl.render(jl.Scene(cam, SMOOTH, source_distance=radius))
+        assert np.all(np.isfinite(img)), radius
+    # Inside the photon sphere only captured rays reach the sphere: light inside the
+    # shadow, none outside it (the centre pixels see the sky, the corners do not).
+    img = jl.render(jl.Scene(cam, SMOOTH, source_distance=1.3))
+    assert img[H // 2, W // 2].sum() > 0 and img[0, 0].sum() == 0
+
+
+@pytest.mark.parametrize("radius", [0.5, 1.0, math.nan, -math.inf, 1e31])
+def test_bad_radius_is_refused_eagerly(radius):
+    with pytest.raises(ValueError, match="source_distance="):
+        jl.Scene(_camera(), SMOOTH, source_distance=radius)
+
+
+_SMALL = jl.Scene(_camera(6, 4, k=1), SMOOTH, source_distance=10.0)
+_TRACED = eqx.filter_jit(
+    lambda r: jl.render_array(eqx.tree_at(lambda s: s.source_distance, _SMALL, r))
+)
+
+
+@pytest.mark.parametrize("radius", [0.5, math.nan, math.inf])
+def test_bad_radius_raises_under_jit(radius):
+    with pytest.raises(Exception, match="source distance must be > 1"):
+        jax.block_until_ready(_TRACED(jnp.asarray(radius)))
+
+
+def test_redshift_of_a_static_emitter_on_the_sphere():
+    cam = jl.Camera(3.0, math.radians(150.0), 24, 16)  # the shadow fills 90 of 150 deg
+    shift = jl.Redshift("bolometric")
+    level = jl.Uniform(1.0)
+    at_inf = jl.render(jl.Scene(cam, level, redshift=shift))
+    radius = 4.0
+    at_r = jl.render(jl.Scene(cam, level, redshift=shift, source_distance=radius))
+    # R > D: every escaping ray crosses the sphere once; g^4 scales by (1 - 1/R)^2.
+    lit = at_inf > 0.5 * at_inf.max()
+    ratio = at_r[lit] / at_inf[lit]
+    assert np.allclose(ratio, (1.0 - 1.0 / radius) ** 2, rtol=1e-6)  # float32 pixels
+    plan = jl.plan(jl.Scene(cam, level, redshift=shift, source_distance=radius))
+    assert any("sqrt(1 - 1/R)" in r for r in plan.reasons)
+
+
+def test_disk_needs_the_sphere_outside_camera_and_disk():
+    cam = _camera(24, 16, k=1)
+    disk = jl.Disk(3.0, 12.0, 1.3)
+    with pytest.raises(ValueError, match="source_distance=10.0 with a Disk"):
+        jl.Scene(cam, SMOOTH, disk=disk, source_distance=10.0)
+    # The disk is opaque in front of the sphere: where it covers a pixel (the pixels
+    # that differ from the bare sky at infinity), the pixel is the disk's, at any R.
+    at_r = jl.render(jl.Scene(cam, SMOOTH, disk=disk, source_distance=25.0))
+    at_inf = jl.render(jl.Scene(cam, SMOOTH, disk=disk))
+    bare = jl.render(jl.Scene(cam, SMOOTH))
+    hit = np.any(at_inf != bare, axis=-1)
+    assert hit.sum() > 20 and np.array_equal(at_r[hit], at_inf[hit])
+    assert not np.array_equal(at_r[~hit], at_inf[~hit])  # the sky around it moved
+
+
+def test_plan_refuses_what_has_no_finite_form():
+    scene = jl.Scene(_camera(), SMOOTH, source_distance=10.0, method="table")
+    with pytest.raises(ValueError, match="method='table' has no form"):
+        jl.plan(scene)
+    gauss = jl.Scene(_camera(sampling="gauss"), SMOOTH, source_distance=10.0)
+    with pytest.raises(ValueError, match='sampling="gauss" does not support a source_distance'):
+        jl.plan(gauss)
+    reasons = jl.plan(jl.Scene(_camera(), SMOOTH, source_distance=10.0)).reasons
+    assert any(r.startswith("source_distance: the sky lies on the sphere") for r in reasons)
