@@ -92,6 +92,9 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
     p.add_argument(
         "--accuracy", type=float, help="ray-map accuracy, radians, in (0, 0.1) (default 1e-8)"
     )
+    p.add_argument("--source-distance", type=float, metavar="R",
+                   help="the sky on a transparent sphere of radius R about the hole, units of "
+                   "R_S, in (1, 1e30] (default: the sky at infinity)")  # fmt: skip
     p.add_argument(
         "--float64", action="store_true", help="compute pixels in float64 (default float32)"
     )
@@ -102,7 +105,14 @@ def scene_dict(args) -> dict:
     """The validated scene: the file (if any), then the command-line options over it.
     Each option is checked first against the scene key it sets, so that its message
     names the option and its value (`--distance -inf is not valid: expected ...`)."""
-    from ._scene import CAMERA_KEYS, OUTPUT_KEYS, TOP_KEYS, read_scene_file, validate
+    from ._scene import (
+        CAMERA_KEYS,
+        EFFECTS_KEYS,
+        OUTPUT_KEYS,
+        TOP_KEYS,
+        read_scene_file,
+        validate,
+    )
 
     star, uniform = _schema.keys("sky", "star"), _schema.keys("sky", "uniform")
     options = [
@@ -117,6 +127,7 @@ def scene_dict(args) -> dict:
         ("--roll-deg", args.roll, CAMERA_KEYS["roll_deg"]),
         ("--accuracy", args.accuracy, TOP_KEYS["accuracy"]),
         ("--supersample", args.supersample, CAMERA_KEYS["supersample"]),
+        ("--source-distance", args.source_distance, EFFECTS_KEYS["source_distance"]),
     ]
     for flag, value, key in options:
         if value is not None:
@@ -144,6 +155,8 @@ def scene_dict(args) -> dict:
         data["output"] = {**data.get("output", {}), "exposure": args.exposure}
     if args.accuracy is not None:
         data["accuracy"] = args.accuracy
+    if args.source_distance is not None and isinstance(data.get("effects", {}), dict):
+        data["effects"] = {**data.get("effects", {}), "source_distance": args.source_distance}
     layers = data.get("sky", [dict(layer) for layer in DEFAULT_SKY])
     if args.sky is not None:
         layers = _sky_layers(args.sky)

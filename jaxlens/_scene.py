@@ -35,6 +35,7 @@ sigma_deg = 1.0
 
 [effects]
 method = "auto"            # auto | table | weak_field | trace
+source_distance = 1e4      # the sky on a sphere of this radius (R_S); absent: at infinity
 [effects.motion]
 type = "orbit"             # orbit (circular geodesic at the camera's D) | infall
 angle_deg = 0.0            # orbit: direction of motion in the image, degrees
@@ -116,7 +117,9 @@ ANIMATION_KEYS = {
 
 EFFECTS_KEYS = {
     "method": Key("str", "auto", lambda v: v in METHODS, " | ".join(METHODS)),
-}
+    "source_distance": Key("float", None, greater(1.0), "a number > 1 (units of R_S: the "
+                           "radius of the sphere the sky lies on; absent: at infinity)"),
+}  # fmt: skip
 EFFECT_SECTIONS = {"motion": None, "redshift": "redshift", "disk": "thin"}  # default types
 
 
@@ -420,7 +423,8 @@ class Scene(eqx.Module):
         parts = {name: _schema.build(name, eff[name]) for name in EFFECT_SECTIONS if name in eff}
         return cls(
             _camera_of(v["camera"], dtype=dtype), _sky_of(v["sky"]), **parts,
-            accuracy=v["accuracy"], method=eff["method"], exposure=v["output"]["exposure"],
+            source_distance=eff.get("source_distance"), accuracy=v["accuracy"],
+            method=eff["method"], exposure=v["output"]["exposure"],
         )  # fmt: skip
 
 

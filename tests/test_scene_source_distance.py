@@ -5,6 +5,7 @@ its radius through the second crossing), the hard radii render finite, bad value
 refused eagerly and under `jit`, and the redshift of a static emitter at R."""
 
 import math
+import re
 
 import equinox as eqx
 import jax
@@ -155,3 +156,34 @@ def test_plan_refuses_what_has_no_finite_form():
         jl.plan(gauss)
     reasons = jl.plan(jl.Scene(_camera(), SMOOTH, source_distance=10.0)).reasons
     assert any(r.startswith("source_distance: the sky lies on the sphere") for r in reasons)
+
+
+def test_scene_file_key_and_command_line_flag(tmp_path, capsys, monkeypatch):
+    from helpers import run
+
+    from jaxlens import cli
+
+    scene = jl.Scene.from_dict({"effects": {"source_distance": 40.0}})
+    assert float(scene.source_distance) == 40.0
+    assert jl.Scene.from_dict({}).source_distance is None
+    for value, shown in ((0.5, "0.5"), (1, "1"), (1e31, "1e+31")):
+        with pytest.raises(ValueError, match=re.escape(f"[effects] source_distance = {shown}")):
+            jl.Scene.from_dict({"effects": {"source_distance": value}})
+    with pytest.raises(ValueError, match="expected a number > 1 \\(units of R_S"):
+        jl.Scene.from_dict({"effects": {"source_distance": 0.5}})
+    with pytest.raises(SystemExit):
+        cli.main(["render", "--scene-keys"])
+    keys = capsys.readouterr().out
+    assert "source_distance    # a number > 1 (units of R_S" in keys
+
+    def render(s, **kw):  # what the command would render, without rendering it
+        render.scene = s
+        return np.zeros((s.camera.height, s.camera.width, 3), np.float32)
+
+    monkeypatch.setattr(jl, "render", render)
+    out = str(tmp_path / "o.exr")
+    assert run(["render", "--size", "12x8", "--source-distance", "40", "-o", out], capsys)[0] == 0
+    assert float(render.scene.source_distance) == 40.0
+    for value in ("0.5", "nan", "inf"):
+        code, _, err = run(["render", "--source-distance", value, "-o", out], capsys)
+        assert code == 2 and f"--source-distance {value} is not valid: expected a number > 1" in err
