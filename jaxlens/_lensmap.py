@@ -25,6 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._camera import Camera, sky_direction
+from ._fit.units import C_LIGHT, RS_SUN_M
 from ._messages import shown
 from ._ray_inputs import (
     DISTANCE_MESSAGE,
@@ -131,13 +132,26 @@ class LensedImages(eqx.Module):
 
     **Fields:** `alpha` (angle from the hole's direction, radians), `beta` (azimuth
     about it, camera frame, radians), `magnification` (signed solid-angle ratio),
-    `source_theta` (source angle from $+z$, radians); each `(2, ...)`.
+    `source_theta` (source angle from $+z$, radians); each `(2, ...)`; `time`
+    (`point_source_images_at` only, else `None`): the coordinate time light takes from
+    the source to the camera along each image's ray, less a part all images of one
+    source share (units of R_S/c; see `point_source_images_at`): differences between
+    images, of any order, are their time delays.
     """
 
     alpha: Float[Array, "2 ..."]
     beta: Float[Array, "2 ..."]
     magnification: Float[Array, "2 ..."]
     source_theta: Float[Array, "..."]
+    time: Float[Array, "2 ..."] | None = None
+
+    def delay_seconds(self, mass_msun) -> Float[Array, "2 ..."]:
+        """`time` in seconds for a hole of `mass_msun` solar masses (one R_S/c is
+        $2GM/c^3$ = 9.85 microseconds per solar mass); differences between images are
+        their delays in seconds."""
+        if self.time is None:
+            raise ValueError("these images carry no times: point_source_images_at computes them")
+        return self.time * (RS_SUN_M / C_LIGHT) * jnp.asarray(mass_msun)
 
     def pixels(self, camera: Camera):
         """Pixel coordinates (column, row; fractional, pixel centres at $+0.5$) of the
@@ -280,9 +294,10 @@ def _root_jvp(far, primals, tangents):
 
 
 def _images_at(theta, d, r, order, far):
-    """The images' local angles (radians) and signed magnifications for sources at
-    angle `theta` from +z on the sphere r = `r` (inf: at infinity; `far`: whether every
-    one is, None where not known), the two sides stacked first: `(alpha, mu)`, each
+    """The images' local angles (radians), signed magnifications and reduced light
+    travel times (`_exact.crossing_times`, units of R_S/c) for sources at angle `theta`
+    from +z on the sphere r = `r` (inf: at infinity; `far`: whether every one is, None
+    where not known), the two sides stacked first: `(alpha, mu, time)`, each
     `(2, ...)`."""
     base = (2 * order + 1) * jnp.pi
     target = jnp.stack([base - theta, base + theta])
@@ -326,7 +341,12 @@ def _images_at(theta, d, r, order, far):
     phi = target
     vt, dvt = jax.jvp(lambda p: _source_angle(p, d, r), (phi,), (jnp.ones_like(phi),))
     mu = jnp.sin(alpha) / (jnp.sin(vt) * dvt * dphi)
-    return alpha, mu
+    # The light travel time along the image's ray, its kappa from the offset as solved.
+    offset = jnp.where(on_after, gap, (alpha_r - alpha_sh) - gap)
+    kappa = _exact.kappa_from_offset(offset, alpha_sh)
+    t_first, t_second = _exact.crossing_times(alpha, d, r, _kappa=kappa)
+    time = jnp.where(on_after & (r < d), t_second, t_first)
+    return alpha, mu, time
 
 
 def point_source_images_at(
@@ -359,8 +379,17 @@ def point_source_images_at(
     - `order` (static, whole, $\\ge 0$): 0 for the primary and secondary images, $m$
       for the relativistic pair that winds $m$ more times.
 
+    The time delays: `time` is the coordinate time light takes from the source to the
+    camera along each image's ray (`crossing_times`: $b\\,\\Phi$ plus the radial action,
+    exact to float64's eps times the impact parameter), less $D + \\ln(D-1) +
+    R + \\ln(R-1)$, which all images of one source share (at infinity less $D +
+    \\ln(D-1)$ and the diverging rest: a plane wave's delays). The delay between any two
+    images of the source, of any orders, is the difference of their `time`s (units of
+    R_S/c; `LensedImages.delay_seconds(mass)` in seconds). It is coordinate time: a
+    static camera's own clock runs $\\sqrt{1 - 1/D}$ as fast.
+
     **Returns:** `LensedImages` (`source_theta`: the angle from $+z$ of the source's
-    direction from the hole). Works under `jit`, `vmap`, `grad`. A bad value is a
+    direction from the hole; `time` as above). Works under `jit`, `vmap`, `grad`. A bad value is a
     `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
     """
     order, direction = _checked_source(order, direction)
@@ -389,5 +418,5 @@ def _point_source_images_at(direction, distance, source_distance, *, order: int,
     beta = jnp.arctan2(n[..., 1], n[..., 0])
     d = jnp.broadcast_to(jnp.asarray(distance, dtype), theta.shape)
     r = jnp.broadcast_to(jnp.asarray(source_distance, dtype), theta.shape)
-    alpha, mu = _images_at(theta, d, r, order, far)
-    return LensedImages(alpha, jnp.stack([beta, beta + jnp.pi]), mu, theta)
+    alpha, mu, time = _images_at(theta, d, r, order, far)
+    return LensedImages(alpha, jnp.stack([beta, beta + jnp.pi]), mu, theta, time)
