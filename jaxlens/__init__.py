@@ -127,6 +127,7 @@ _MODULES = {
         "write_video",
     ),
     "_lensmap": (
+        "LensedImages",
         "magnification",
         "point_lens_magnification",
         "point_source_images",

@@ -100,6 +100,7 @@ from ._io import (
     write_video as write_video,
 )
 from ._lensmap import (
+    LensedImages as LensedImages,
     magnification as magnification,
     point_lens_magnification as point_lens_magnification,
     point_source_images as point_source_images,
@@ -211,6 +212,7 @@ __all__ = [
     "GaussianPSF",
     "GaussianStar",
     "ImagePSF",
+    "LensedImages",
     "MissingExtraError",
     "Observation",
     "Panorama",
