@@ -11,9 +11,12 @@ under `grad`) is this function on a block of rows, with the stages its `Plan` na
 3. **redshift**: the camera's frequency ratio $g$ for light from infinity.
 4. **geometry**: the escape angle $\\Phi(\\alpha)$ from the plan's source: the ray map
    (`RayMap`, built once per distance), the weak-field series, or the exact closed
-   form per ray (`trace`). Samples that straddle the shadow edge are weighted by the
-   fraction of their footprint outside it (a linear ramp over one sample in
-   $\\alpha$), so the edge carries gradient with respect to distance and field of view.
+   form per ray (`trace`). For a sky on a sphere $r = R$ (`Scene.source_distance`):
+   the azimuth of its crossing from the ray map of $(D, R)$ ($R > D$), or each ray's
+   exact crossings (`"crossings"`, up to two, their radiance added). Samples that
+   straddle the shadow edge are weighted by the fraction of their footprint outside
+   it (a linear ramp over one sample in $\\alpha$), so the edge carries gradient with
+   respect to distance and field of view.
 5. **sky**: the sky's radiance in the escaping directions (frequency-shifted if asked).
 6. **disk**: rays that can reach the disk are followed through its plane.
 7. the mean over each pixel's samples.
@@ -241,7 +244,7 @@ def _geometry(scene, plan, ray_map, x, y):
         else:
             alpha_sh = shadow_angle(cam.distance).astype(dt)
         cover, edge = coverage(alpha, alpha_sh, width)
-        if scene.source_distance is not None:
+        if _on_shell(plan):
             phi, cover = _shell_crossings(scene, alpha, cover, edge)
             if g is not None:
                 g = jnp.broadcast_to(g, phi.shape)
@@ -249,6 +252,14 @@ def _geometry(scene, plan, ray_map, x, y):
             phi = _escape_angle(scene, plan, ray_map, edge)
     sin_phi, cos_phi = sin_cos(phi)
     return sin_phi, cos_phi, cb, sb, cover, g, alpha
+
+
+def _on_shell(plan) -> bool:
+    """Whether the block's rays take the exact crossings of the sky's sphere (up to two
+    a ray, a leading axis of 2 on their arrays). A sphere beyond the camera read from
+    its ray map (`RayMap.build(..., radius=R)`, the `"table"` geometry) takes the sky
+    at infinity's path: one crossing a ray, where it escapes."""
+    return plan.geometry == "crossings"
 
 
 def _shell_crossings(scene, alpha, cover, edge):
@@ -628,7 +639,7 @@ def shade(scene, plan, ray_map, row0, rows: int, pair: bool = False, check: bool
         scene = checked(scene)
     cam = scene.camera
     k, w = cam.supersample, cam.width
-    shell = scene.source_distance is not None
+    shell = _on_shell(plan)
     if plan.symmetric:
         n, cover, g = _symmetric(scene, plan, ray_map, row0, rows, pair)
         rad = _radiance(scene, plan, n, g) * cover[..., None]

@@ -12,7 +12,9 @@ concrete) its values:
   and the series' rigorous truncation bound is below the accuracy (and the view is
   small enough that the table's build is not amortised); or `"trace"`, the exact
   closed form per ray, when the scene forces it; for a sky on a sphere
-  (`Scene.source_distance`), `"crossings"`: each ray's crossings of it, exact per ray.
+  (`Scene.source_distance` $R$): the ray map of $(D, R)$ where $R \\ge 1.25 D$ and
+  $D \\ge 1.5$ (one crossing a ray), else `"crossings"`: each ray's crossings of it,
+  exact per ray.
   A scene that forces `"weak_field"`
   keeps its accuracy: where the series' bound over the view is not below it (or cannot
   be computed, the camera's values traced), `plan` raises a `ValueError` with the bound
@@ -36,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _kernel
-from ._util import is_concrete
+from ._util import concrete as concrete_value, is_concrete
 from ._weak import WEAK_MAX_SAMPLES, weak_field_series
 
 CHUNK_SAMPLES = 1 << 21  # default area samples a compiled block holds
@@ -51,7 +53,7 @@ class Plan:
     **Fields:**
     - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$), or
       `"crossings"` (a sky on a sphere, `Scene.source_distance`: the exact crossings of
-      it per ray).
+      it per ray; a sphere beyond the camera is read from its `"table"`).
     - `aberration`: `None`, `"radial"` or `"boost"`; `redshift`: `None`,
       `"bolometric"` or `"spectral"`; `disk`: whether disk rays are traced.
     - `disk_rays`: rays a block follows through the disk plane (`None`: all, masked);
@@ -231,10 +233,69 @@ def _forced_weak_bound(scene, base: Plan, concrete: bool) -> float:
     return bound
 
 
+# The smallest R / D whose ray map of (D, R) is taken. The crossing's azimuth has a
+# square-root kink at alpha = pi/2 as R -> D (the sphere through the camera): at
+# R = 1.1 D the table at accuracy 1e-8 was 1.6e-8 off there (D = 1e6), at 1.25 D and
+# beyond at most 6e-9 (D = 1.6, 20, 1e6; accuracies 1e-8 and 1e-10, against
+# finite_crossings on 2e5 rays).
+SHELL_TABLE_MIN = 1.25
+
+
+def _shell_geometry(scene, concrete: bool) -> tuple[str, str]:
+    """The source of the crossings of a sky on a sphere (`Scene.source_distance`) and
+    why: the ray map of $(D, R)$ for a sphere beyond a camera outside the photon sphere
+    (one crossing a ray, smooth in $\\tau$ as the escape angle; $R \\ge$
+    `SHELL_TABLE_MIN` $D$), else each ray's exact crossings; a `ValueError` for what
+    has neither."""
+    cam = scene.camera
+    r = None if not concrete else concrete_value(scene.source_distance)
+    d = np.asarray(cam.distance) if concrete else None
+    beyond = r is not None and bool(np.all(r >= SHELL_TABLE_MIN * d) and np.all(d >= 1.5))
+    if beyond and scene.method in ("auto", "table"):
+        return "table", (
+            f"source_distance R = {float(r):g} >= {SHELL_TABLE_MIN:g} D: the sky lies on the "
+            "sphere r = R, each ray crosses it once, after its periapsis, at an azimuth as "
+            "smooth in tau as the escape angle: the ray map of (D, R) "
+            "(RayMap.build(..., radius=R)), interpolated per ray, a look-up as cheap as the "
+            "sky at infinity's (the exact crossings per ray cost far more a frame: "
+            "benchmarks/results/source_distance.md)"
+        )
+    if cam.sampling == "gauss":
+        raise ValueError(
+            'sampling="gauss" with a source_distance needs the ray map of (D, R): a sphere '
+            "beyond a camera outside the photon sphere, known values (source_distance >= "
+            f"{SHELL_TABLE_MIN:g} x distance, distance >= 1.5); render others with "
+            'sampling="uniform"'
+        )
+    if scene.method not in ("auto", "trace"):
+        raise ValueError(
+            f"method={scene.method!r} has no form for this source_distance (the ray map "
+            f"holds the one crossing of a sphere at R >= {SHELL_TABLE_MIN:g} D, values known, "
+            "the weak-field series the escape angle at infinity): use method='auto' or "
+            "'trace'"
+        )
+    if scene.method == "trace":
+        why = "method='trace' forced by the scene"
+    elif r is None:
+        why = "the distances are traced, so whether R > D is not known"
+    elif not np.all(d >= 1.5):
+        why = "the camera is inside the photon sphere (rays inside the shadow cross R too)"
+    elif np.all(r > d):
+        why = (f"R = {float(r):g} < {SHELL_TABLE_MIN:g} D: the ray map of (D, R) would miss "
+               "the accuracy where the crossing bends sharply (alpha near pi/2)")  # fmt: skip
+    else:
+        why = f"R = {float(r):g} <= D: rays cross the sphere twice, in and out"
+    return "crossings", (
+        f"source_distance: the sky lies on the sphere r = R; {why}: each ray's crossings "
+        "of it (up to 2, their radiance added) from the exact closed form per ray "
+        "(finite_crossings)"
+    )
+
+
 def _plan(scene, chunk_samples):
     cam = scene.camera
     reasons = []
-    concrete = is_concrete((cam, scene.motion)) and (
+    concrete = is_concrete((cam, scene.motion, scene.source_distance)) and (
         scene.disk is None or is_concrete(scene.disk.r_out)
     )
     if scene.motion is None:
@@ -301,24 +362,8 @@ def _plan(scene, chunk_samples):
 
     weak_bound = None
     if scene.source_distance is not None:
-        if gauss:
-            raise ValueError(
-                'sampling="gauss" does not support a source_distance yet (its thin rings '
-                'solve the ray map at infinity): render with sampling="uniform"'
-            )
-        if scene.method not in ("auto", "trace"):
-            raise ValueError(
-                f"method={scene.method!r} has no form for a sky at a finite source_distance "
-                "(the ray map and the weak-field series give the escape angle at infinity): "
-                "use method='auto' or 'trace'"
-            )
-        geometry = "crossings"
-        reasons.append(
-            "source_distance: the sky lies on the sphere r = R, each ray's crossings of it "
-            "(up to 2, their radiance added) from the exact closed form per ray "
-            "(finite_crossings): it costs about escape_angle's, and a table per (D, R) is "
-            "not built (benchmarks/results/source_distance.md)"
-        )
+        geometry, why = _shell_geometry(scene, concrete)
+        reasons.append(why)
     elif gauss:
         geometry = "table"
     elif scene.method == "weak_field":

@@ -24,9 +24,10 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._compile import program
+from ._messages import shown
 from ._ray_inputs import check_distance, check_dtype, check_real
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
-from ._util import fusion_barrier, is_concrete, tracing
+from ._util import concrete, fusion_barrier, is_concrete, tracing
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -90,6 +91,7 @@ class RayMap(eqx.Module):
         alpha_max: float = math.pi,
         exact_slopes: bool = False,
         iterations: int = 8,
+        radius: ArrayLike | None = None,
     ) -> "RayMap":
         """Tabulate Phi(alpha) for a camera at `distance` (units of R_S, scalar).
 
@@ -112,6 +114,11 @@ class RayMap(eqx.Module):
           several times faster.
         - `iterations`: duplication steps of Carlson's $R_F$ in the closed form at the
           knots (8: round-off; 6: 3e-14 rad, `trace`'s ladder).
+        - `radius`: `None` (the escape angle), or the radius $R$ of a sphere beyond the
+          camera ($R > D$, units of R_S, scalar): the knot values are then the azimuth
+          at which each escaping ray crosses $r = R$ (`finite_crossings`; once, after
+          its periapsis), as smooth in $\\tau$ as the escape angle. The sky on a sphere
+          (`Scene.source_distance`) reads it in place of the escape angle.
 
         Called with a concrete distance outside a transformation (not under `jit`,
         `grad`, `vmap`), it runs one compiled program a setting and keeps the tables of
@@ -125,10 +132,17 @@ class RayMap(eqx.Module):
         distance = check_real("distance", distance)
         dtype = check_dtype(jnp.result_type(float, distance), "dtype of distance")
         distance = check_distance(distance, dtype)
+        if radius is not None:
+            radius = check_real("radius", radius)
+            r, d = concrete(radius), concrete(distance)
+            if r is not None and d is not None and not np.all(np.asarray(r) > d):
+                raise ValueError(f"radius={shown(np.asarray(r))} must be > distance = "
+                                 f"{shown(np.asarray(d))} (units of R_S): the table holds "
+                                 "the one crossing of a sphere beyond the camera")  # fmt: skip
         return tabulate(
             distance, accuracy=accuracy, knots=knots, max_windings=max_windings,
             captured=captured, alpha_max=alpha_max, exact_slopes=exact_slopes,
-            iterations=iterations, cls=cls,
+            iterations=iterations, cls=cls, radius=radius,
         )  # fmt: skip
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
@@ -235,35 +249,48 @@ def tabulate(
     exact_slopes: bool = False,
     iterations: int = 8,
     cls=RayMap,
+    radius=None,
 ) -> RayMap:
     """`RayMap.build` without its check of the distance: for callers that checked it
     already (`trace`, the renderer, the fit), so that their compiled programs hold no
-    second error callback (a program with one is not kept by the persistent cache)."""
+    second error callback (a program with one is not kept by the persistent cache).
+    `radius`: as `RayMap.build`'s (the caller has checked $R > D$)."""
     dtype = jnp.result_type(float, distance)
-    concrete_d = is_concrete(distance) and not tracing()
+    concrete_d = is_concrete((distance, radius)) and not tracing()
     # A concrete distance stays on the host (`jnp.asarray` would compile a program).
     d = np.asarray(distance, dtype) if concrete_d else jnp.asarray(distance, dtype)
     if d.ndim != 0:
         raise ValueError(f"RayMap.build needs a scalar distance, got shape {d.shape}")
+    r = None
+    if radius is not None:
+        r = np.asarray(radius, dtype) if concrete_d else jnp.asarray(radius, dtype)
+        if r.ndim != 0:
+            raise ValueError(f"RayMap.build needs a scalar radius, got shape {r.shape}")
+        if captured:
+            raise ValueError("RayMap.build(radius=...) tabulates the escaping rays only: "
+                             "captured=True is not supported with a radius")  # fmt: skip
     settings = _settings(accuracy, knots, max_windings, captured, alpha_max,
                          exact_slopes, iterations)  # fmt: skip
     if not concrete_d:  # part of the caller's program
-        return _tabulated(cls, d, **settings)
+        return _tabulated(cls, d, r, **settings)
     # A concrete distance: one compiled program a setting, reused for every distance
     # (not op by op), and the table of
     # each of the last few distances kept for the next build. An eager jacfwd or
     # grad through the build traces it, so it stays op by op there.
-    return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()))
+    return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()),
+                             None if r is None else r.item())  # fmt: skip
 
 
-def _tabulated(cls, d, *, knots, max_windings, captured, alpha_max, exact_slopes, iterations):
-    """The body of `RayMap.build` for a float array `d`, the settings resolved."""
+def _tabulated(cls, d, r, *, knots, max_windings, captured, alpha_max, exact_slopes,
+               iterations):  # fmt: skip
+    """The body of `RayMap.build` for a float array `d` (and `r`, the sphere's radius,
+    or `None`), the settings resolved."""
     alpha_sh = _exact.shadow_angle(d)
     # Both sides of the shadow edge in one evaluation of the closed form (one copy of
     # it in the program: compiling it dominates a first call).
     spans = [(alpha_max - alpha_sh, 1.0)] + ([(alpha_sh, -1.0)] if captured else [])
     sides = _tabulate(d, alpha_sh, spans, n=knots, exact_slopes=exact_slopes,
-                      iterations=iterations)  # fmt: skip
+                      iterations=iterations, radius=r)  # fmt: skip
     outer = sides[0]
     inner = sides[1] if captured else None
     peri = None
@@ -302,15 +329,16 @@ def _settings(
 # The closed form on a few thousand knots, once a distance: compiled without LLVM's
 # optimisations (the table's errors unchanged).
 @program(profile="legacy_fusion_o0_side")
-def _tabulated_compiled(cls, d, settings: dict):
-    return _tabulated(cls, d, **settings)
+def _tabulated_compiled(cls, d, r, settings: dict):
+    return _tabulated(cls, d, r, **settings)
 
 
 @functools.lru_cache(maxsize=16)
-def _tabulated_recent(cls, dtype: str, distance: float, settings: tuple):
-    """The tables of the last distances built eagerly (a few thousand knots each): the
-    next `trace` at the same camera distance reuses its table."""
-    return _tabulated_compiled(cls, np.asarray(distance, dtype), dict(settings))
+def _tabulated_recent(cls, dtype: str, distance: float, settings: tuple, radius=None):
+    """The tables of the last distances (and radii) built eagerly (a few thousand knots
+    each): the next `trace` at the same camera distance reuses its table."""
+    r = None if radius is None else np.asarray(radius, dtype)
+    return _tabulated_compiled(cls, np.asarray(distance, dtype), r, dict(settings))
 
 
 def _structure(cls, settings: dict):
@@ -332,7 +360,7 @@ def placeholder(dtype, lead: tuple = (), **options) -> "RayMap":
     return jax.tree.unflatten(_structure(RayMap, settings), leaves)
 
 
-def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):
+def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations, radius=None):
     """`(knots, dtau, phi, slope)` of each side `(span, sign)` of the shadow edge, the
     closed form evaluated once on all sides' knots together."""
     # Knots uniform in tau = ln|alpha - alpha_sh| from 1e-13 alpha_sh to `span` (the
@@ -360,6 +388,9 @@ def _tabulate(d, alpha_sh, spans, *, n, exact_slopes, iterations):
     alpha, d = jax.lax.optimization_barrier((alpha, d))
 
     def phi_of_alpha(a):
+        if radius is not None:  # the one crossing of a sphere beyond the camera
+            return _exact.finite_crossings(a, d, radius, iterations=iterations,
+                                           max_windings=1e6).first  # fmt: skip
         return _exact.escape_angle(a, d, iterations=iterations, max_windings=1e6)[0]
 
     if exact_slopes:

@@ -56,9 +56,10 @@ def _map_dtype(dtype):
     return jnp.float64 if jax.config.read("jax_enable_x64") else dtype
 
 
-def ray_maps(distances, accuracy: float, dtype) -> RayMap:
+def ray_maps(distances, accuracy: float, dtype, radius=None) -> RayMap:
     """Ray maps of a batch of distances `(N,)` (units of R_S), stacked: built in
-    float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`.
+    float64 where `jax_enable_x64` is on (else in `dtype`), evaluated in `dtype`;
+    with `radius` (the sky's sphere, beyond every distance), of its crossing.
 
     Each is `RayMap.build`'s (one compiled program for every distance of an accuracy,
     as `trace`'s table is built, `TABLE_SETTINGS`; the tables of the last distances
@@ -66,10 +67,11 @@ def ray_maps(distances, accuracy: float, dtype) -> RayMap:
     dtype with a batch axis on the host: no eager op (each a small compile in a fresh
     process) between it and the block program."""
     d = np.asarray(distances, _map_dtype(dtype)).reshape(-1)
+    r = None if radius is None else np.asarray(radius, d.dtype)
     maps = [
         jax.tree.map(
             lambda a: np.asarray(a, dtype)[None],
-            RayMap.build(x, accuracy=accuracy, **TABLE_SETTINGS),
+            RayMap.build(x, accuracy=accuracy, radius=r, **TABLE_SETTINGS),
         )  # fmt: skip
         for x in d
     ]
@@ -113,7 +115,7 @@ def _prepare(scene: Scene, dtype):
 def _maps_for(scene, plan, dtype):
     if plan.geometry != "table":
         return None
-    return ray_maps(scene.camera.distance, scene.accuracy, dtype)
+    return ray_maps(scene.camera.distance, scene.accuracy, dtype, scene.source_distance)
 
 
 def _ahead(scene, p: Plan, dtype) -> tuple:
@@ -405,7 +407,8 @@ def _render_array(scene, p: Plan, ray_map):
     cam = scene.camera
     if p.geometry == "table" and ray_map is None:
         # The distance is checked (`checked`/`verify`): no second error callback here.
-        ray_map = tabulate(cam.distance, accuracy=scene.accuracy, **TABLE_SETTINGS)
+        ray_map = tabulate(cam.distance, accuracy=scene.accuracy, radius=scene.source_distance,
+                           **TABLE_SETTINGS)  # fmt: skip
     if ray_map is not None:
         ray_map = ray_map.astype(cam.dtype)
     rows = cam.height // 2 if p.pair else cam.height

@@ -42,15 +42,35 @@ def test_far_sphere_agrees_with_infinity_and_float32_works():
     cam = _camera()
     ref = jl.render(jl.Scene(cam, SMOOTH))
     scene = jl.Scene(cam, SMOOTH, source_distance=1e12)
-    assert jl.plan(scene).geometry == "crossings"
+    assert jl.plan(scene).geometry == "table"  # the ray map of (D, R)
     far = jl.render(scene)
     # At R = 1e12 a crossing's azimuth differs from the escape angle by ~b/R ~ 1e-11
     # rad: the pixels agree to float32 output rounding, far below 1e-6 of the peak.
     assert np.max(np.abs(far - ref)) <= 1e-6 * np.max(ref)
+    # ... and so do the exact crossings per ray.
+    exact = jl.render(scene.replace(method="trace"))
+    assert jl.plan(scene.replace(method="trace")).geometry == "crossings"
+    assert np.max(np.abs(exact - ref)) <= 1e-6 * np.max(ref)
     f32 = jl.render(scene, dtype="float32")
     # float32 sky directions are good to ~1e-6 rad, the sky's slope ~1/sigma per rad,
     # and the shadow-edge ramp moves by float32's share of a sample: 1e-3 of the peak.
     assert np.all(np.isfinite(f32)) and np.max(np.abs(f32 - ref)) <= 1e-3 * np.max(ref)
+
+
+def test_ray_map_of_the_sphere_agrees_with_the_exact_crossings():
+    cam = _camera()
+    scene = jl.Scene(cam, SMOOTH, source_distance=2.0 * D)
+    plan = jl.plan(scene)
+    assert plan.geometry == "table" and any("ray map of (D, R)" in r for r in plan.reasons)
+    table = jl.render(scene)
+    exact = jl.render(scene.replace(method="trace"))
+    # The table's interpolation error (1e-8 rad, the scene's accuracy) times the sky's
+    # slope (~1/sigma = 1.7 a radian) is far below the float32 output's rounding: 1e-6.
+    assert np.max(np.abs(table - exact)) <= 1e-6 * np.max(exact)
+    assert not np.allclose(table, jl.render(jl.Scene(cam, SMOOTH)), rtol=1e-3)  # R shows
+    # Between D and 1.25 D the crossing bends sharply near alpha = pi/2: exact per ray.
+    near = jl.plan(jl.Scene(cam, SMOOTH, source_distance=1.1 * D))
+    assert near.geometry == "crossings" and any("< 1.25 D" in r for r in near.reasons)
 
 
 # A star 6 degrees off the axis behind the hole, on the sphere: each of its two
@@ -152,10 +172,15 @@ def test_plan_refuses_what_has_no_finite_form():
     with pytest.raises(ValueError, match="method='table' has no form"):
         jl.plan(scene)
     gauss = jl.Scene(_camera(sampling="gauss"), SMOOTH, source_distance=10.0)
-    with pytest.raises(ValueError, match='sampling="gauss" does not support a source_distance'):
+    with pytest.raises(ValueError, match='sampling="gauss" with a source_distance needs'):
         jl.plan(gauss)
     reasons = jl.plan(jl.Scene(_camera(), SMOOTH, source_distance=10.0)).reasons
     assert any(r.startswith("source_distance: the sky lies on the sphere") for r in reasons)
+    # Area-exact cells read the ray map of (D, R), thin rings included.
+    cells = jl.Scene(_camera(24, 16, sampling="gauss"), SMOOTH, source_distance=40.0)
+    img = jl.render(cells)
+    ref = jl.render(cells.replace(source_distance=None))
+    assert np.all(np.isfinite(img)) and not np.allclose(img, ref, rtol=1e-3)
 
 
 def test_scene_file_key_and_command_line_flag(tmp_path, capsys, monkeypatch):
