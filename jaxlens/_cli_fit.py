@@ -179,6 +179,16 @@ def register(sub):
         default=None,
         help="camera distance in metres (1e-30 to 1e30): the mass",
     )
+    p.add_argument(
+        "--source-distance",
+        metavar="LENGTH",
+        default=None,
+        help="the star's distance behind the hole, a number with a unit (m, km, au, pc, "
+        "kpc, Mpc, ly; e.g. 8.5kpc): with --distance-m (the observer's distance) the "
+        "source sphere's radius follows the fitted D and the mass is measured; with "
+        "--mass-msun it is fixed and the observer's distance is measured. In units of "
+        "R_S (e.g. 4e4Rs): the radius itself, fixed. Default: at infinity",
+    )
     p.add_argument("--json", action="store_true", help="end with one line of JSON")
     _multi.add_options(p)
     p.set_defaults(run=run)
@@ -200,6 +210,7 @@ def run(args):
     dist_m = None
     if args.distance_m is not None:
         dist_m = _positive("--distance-m", "metres")(args.distance_m)
+    source = _source(args.source_distance, mass, dist_m)
 
     psf, free = None, list(DEFAULT_FREE)
     if args.psf_sigma_px is not None:
@@ -238,7 +249,7 @@ def run(args):
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
                             mask=args.mask, init=init or None, transfer=args.transfer,
-                            pixels=args.pixels)  # fmt: skip
+                            pixels=args.pixels, source_distance=source)  # fmt: skip
         except (ValueError, OSError) as e:
             if not several:
                 raise
@@ -277,11 +288,43 @@ def run(args):
     return 0
 
 
+def _source(text, mass, dist_m):
+    """`--source-distance`'s `SourceDistance` (None without it): a length in R_S is the
+    radius; a length in metres is the distance behind the hole, which needs the
+    observer's distance (`--distance-m`) or the mass (`--mass-msun`)."""
+    if text is None:
+        return None
+    from ._fit import SourceDistance
+    from ._fit.units import parse_length
+
+    length = parse_length(text, name="--source-distance")
+    try:
+        if length.in_rs:
+            return SourceDistance(radius=length.value)
+        if dist_m is None and mass is None:
+            raise ValueError(
+                f"--source-distance {cut(repr(text))} is a distance behind the hole: give "
+                "the observer's distance (--distance-m) to measure the mass, or the mass "
+                "(--mass-msun) to measure the distance, or the source sphere's radius in "
+                "units of R_S (e.g. 4e4Rs)"
+            )
+        if dist_m is not None:
+            return SourceDistance(behind=length.metres, observer=dist_m)
+        return SourceDistance(behind=length.metres, mass=mass)
+    except ValueError as e:
+        if str(e).startswith("--source-distance"):
+            raise
+        raise ValueError(f"--source-distance {cut(repr(text))}: {e}") from None
+
+
 def _report(args, image, fit, mass, dist_m) -> str:
     """One image's result: the readable report (`Fit.summary()` and the physical
     scale), or one line of JSON (`Fit.to_dict()` and the same)."""
     out = {"image": image, **fit.to_dict()}
     lines = [f"fit of {image}", fit.summary()]
+    if fit.source_distance is not None and fit.source_distance.behind is not None:
+        # The summary and the dict hold the mass or the distance the source measured.
+        mass = dist_m = None
     if mass is not None:
         d_m, d_m_err = fit.distance_m(mass)
         out.update(mass_msun=mass, distance_m=d_m, distance_m_err=d_m_err)

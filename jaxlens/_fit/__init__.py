@@ -42,6 +42,7 @@ from .observation import (
 )
 from .params import PARAMETERS as PARAMETERS
 from .ring import fit_ring as fit_ring
+from .source import SourceDistance as SourceDistance
 from .table import einstein_ring_angle as einstein_ring_angle, escape_table as escape_table
 from .units import (
     C_LIGHT as C_LIGHT,
@@ -49,5 +50,6 @@ from .units import (
     RS_SUN_M as RS_SUN_M,
     distance_in_metres as distance_in_metres,
     mass_from_distance as mass_from_distance,
+    parse_length as parse_length,
     schwarzschild_radius_m as schwarzschild_radius_m,
 )

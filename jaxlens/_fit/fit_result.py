@@ -8,6 +8,7 @@ import numpy as np
 
 from .noise import GOODNESS_SIGMAS
 from .params import is_angle, parameter
+from .source import SourceDistance
 from .units import mass_from_distance, schwarzschild_radius_m
 
 
@@ -49,6 +50,11 @@ class Fit:
       the multiple correlation of one with the other free parameters (NaN when D or
       FOV is held); above 1e9 the curvature is singular.
     - `seconds`: wall time, compile included.
+    - `source_distance`: the `SourceDistance` the model placed the source at (None:
+      at infinity). With it, `source_radius` (and `_err`: the source sphere's radius,
+      R_S), `mass` and `mass_err` (solar masses; where the observer's distance was
+      given), `observer_distance` and `observer_distance_err` (metres; where the
+      mass was given), Quantities where the `SourceDistance` was given Quantities.
     - `transfer`: how a file's values were read: `"srgb"` (8/16-bit, decoded from sRGB
       to linear), `"linear"` (as stored; integer files normalised to [0, 1]); `None`
       for an array. `transfer_reason`: why that decoding ("tagged sRGB", "untagged:
@@ -115,6 +121,7 @@ class Fit:
     blur_variance: float = math.nan
     blur_z: float = math.nan
     caveat: str = ""
+    source_distance: SourceDistance | None = None
 
     @property
     def fits_noise(self) -> bool:
@@ -150,6 +157,65 @@ class Fit:
             return math.nan
         return math.sqrt(self.chi2_dof) * self.noise_sigma
 
+    @property
+    def source_radius(self) -> float:
+        """The source sphere's radius (units of R_S): $R$ of `source_distance` at the
+        fitted distance, `inf` for a source at infinity."""
+        if self.source_distance is None:
+            return math.inf
+        return float(self.source_distance.radius_of(self.values["distance"]))
+
+    @property
+    def source_radius_err(self) -> float:
+        """The standard error of `source_radius` (R_S): the distance's scaled where the
+        radius follows it, else 0."""
+        if self.source_distance is None:
+            return 0.0
+        return self.source_distance.linear()[0] * self.errors.get("distance", 0.0)
+
+    def _scale(self, which: str):
+        sd = self.source_distance
+        d, e = self.values["distance"], self.errors.get("distance", 0.0)
+        out = None
+        if sd is not None:
+            out = sd.mass_of(d, e) if which == "mass" else sd.observer_distance_of(d, e)
+        if out is None:
+            need = (
+                "the observer's distance: fit with source_distance=SourceDistance("
+                "behind=D_LS, observer=D_OL), or call mass_msun(distance_m)"
+                if which == "mass"
+                else "the mass: fit with source_distance=SourceDistance(behind=D_LS, "
+                "mass=M), or call distance_m(mass_msun)"
+            )
+            raise ValueError(f"the fit does not measure the {which.replace('_', ' ')} "
+                             f"without {need}")  # fmt: skip
+        return out
+
+    @property
+    def mass(self):
+        """The hole's mass (solar masses; a Quantity where the `SourceDistance` was
+        given Quantities), from the fitted D and the given observer's distance:
+        $M = D_{OL} / (D R_{S\\odot})$. `ValueError` where that distance was not
+        given."""
+        return self._scale("mass")[0]
+
+    @property
+    def mass_err(self):
+        """The standard error of `mass` (its relative error is D's)."""
+        return self._scale("mass")[1]
+
+    @property
+    def observer_distance(self):
+        """The observer's (camera's) distance from the hole (metres; a Quantity where
+        the `SourceDistance` was given Quantities): $D \\, R_S(M)$ from the given mass,
+        or the given distance. `ValueError` where neither was given."""
+        return self._scale("observer_distance")[0]
+
+    @property
+    def observer_distance_err(self):
+        """The standard error of `observer_distance` (0 where it was given)."""
+        return self._scale("observer_distance")[1]
+
     def distance_m(self, mass_msun: float) -> tuple[float, float]:
         """Camera distance in metres, and its standard error, for a hole of `mass_msun`."""
         rs = float(schwarzschild_radius_m(mass_msun))
@@ -182,6 +248,7 @@ class Fit:
             pixels_reason=self.pixels_reason, blur_variance=self.blur_variance,
             blur_z=self.blur_z, caveat=self.caveat,
         )  # fmt: skip
+        out.update(_scale_dict(self))
         return out
 
     def summary(self) -> str:
@@ -219,8 +286,56 @@ class Fit:
             lines.append(f"transfer     = {self.transfer} ({how}{why})")
         if self.pixels != "area":
             lines.append(f"pixels       = {self.pixels} ({self.pixels_reason})")
+        lines += _scale_lines(self)
         if self.message:
             lines.append(self.message)
         if self.caveat:
             lines.append(f"caveat: {self.caveat}")
         return "\n".join(lines)
+
+
+def _plain(x) -> float:
+    """A float of a float or a Quantity (in the unit it is in: metres or M_sun)."""
+    return float(getattr(x, "value", x))
+
+
+def _scale_dict(fit: Fit) -> dict:
+    """The source's placement and what it measures, as plain numbers for JSON:
+    `source_radius` (R_S, null at infinity), `source_behind_m`, and `mass_msun`,
+    `distance_m` with their errors where measured or given."""
+    sd = fit.source_distance
+    if sd is None:
+        return {}
+    out = {"source_radius": fit.source_radius, "source_radius_err": fit.source_radius_err}
+    if sd.behind is not None:
+        out["source_behind_m"] = sd.behind_m
+    if sd.observer is not None:
+        m, e = fit.mass, fit.mass_err
+        out |= {"mass_msun": _plain(m), "mass_msun_err": _plain(e), "distance_m": sd.observer_m}
+    if sd.mass is not None:
+        d, e = fit.observer_distance, fit.observer_distance_err
+        out |= {"distance_m": _plain(d), "distance_m_err": _plain(e), "mass_msun": sd.mass_msun}
+    return out
+
+
+def _scale_lines(fit: Fit) -> list:
+    """The summary's lines of the source's placement and the mass or distance it
+    measures."""
+    sd = fit.source_distance
+    if sd is None:
+        return []
+    r, r_err = fit.source_radius, fit.source_radius_err
+    if sd.follows_distance:
+        how = f"D x D_LS / D_OL, D_LS = {sd.behind_m:.6g} m, D_OL = {sd.observer_m:.6g} m"
+        lines = [f"{'source R':<12} = {r:.6g} +- {r_err:.2g} R_S ({how})"]
+        m, e = (_plain(v) for v in (fit.mass, fit.mass_err))
+        lines.append(f"{'mass':<12} = {m:.6g} +- {e:.2g} M_sun")
+        return lines
+    if sd.radius is not None:
+        return [f"{'source R':<12} = {r:.6g} R_S (fixed)"]
+    how = f"D_LS = {sd.behind_m:.6g} m / R_S of {sd.mass_msun:.6g} M_sun"
+    d, e = (_plain(v) for v in (fit.observer_distance, fit.observer_distance_err))
+    return [
+        f"{'source R':<12} = {r:.6g} R_S (fixed: {how})",
+        f"{'distance':<12} = {d:.6g} +- {e:.2g} m (observer, mass {sd.mass_msun:.6g} M_sun)",
+    ]

@@ -22,6 +22,7 @@ from .noise import white_noise_found
 from .objective import loss, renoise_placeholders, solve, solve_passes
 from .observation import Observation, observe
 from .params import apply, in_scene, parameter, split_name, star_of
+from .source import SourceDistance
 
 DEFAULT_FREE = (
     "distance",
@@ -54,6 +55,7 @@ def fit(
     rtol: float = 1e-6,
     atol: float | None = None,
     max_steps: int = 100,
+    source_distance: SourceDistance | None = None,
 ) -> Fit:
     """Fit the parameters of a scene to an observed image.
 
@@ -106,6 +108,14 @@ def fit(
       `max_pixels` (default 40,000) in all; with a PSF, a regular grid of bins of side
       `block` (default: the smallest leaving at most `max_pixels`, default 65,536).
     - `knots`: of the ray map; `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings.
+    - `source_distance`: where the source lies, a `SourceDistance`: its radius $R$
+      (R_S), or its distance behind the hole with the observer's distance (then $R$
+      follows the fitted $D$ and `Fit.mass` is measured) or with the mass (then
+      `Fit.observer_distance` is measured). `None` (default): the scene's own
+      `source_distance` where it has one (a fixed radius), else at infinity. The model
+      and the start's ring relation then read the ray map of the crossings of that
+      sphere (`source_table`); a fit that ends with the sphere inside the camera's
+      radius ($R < D$, which that map does not describe) is flagged in `message`.
 
     **Returns:** a `Fit`; its `message` names every check that failed, among them
     residuals beyond the noise model (with the likely cause: a missing PSF, clipped
@@ -116,11 +126,13 @@ def fit(
                 "jaxlens.render_array) instead", scene, image, init)  # fmt: skip
     t_start = time.perf_counter()
     free = _checked_free(scene, free, psf)
+    source_distance = _checked_source(scene, source_distance)
     obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain,
                   pixels=pixels)  # fmt: skip
     opts = _options(obs, free, init, block=block, max_pixels=max_pixels,
                     supersample=supersample, knots=knots, rtol=rtol,
-                    atol=1e-6 if atol is None else atol, max_steps=max_steps)  # fmt: skip
+                    atol=1e-6 if atol is None else atol, max_steps=max_steps,
+                    source=source_distance)  # fmt: skip
     if obs.transfer_tagged:
         return _fit_observed(scene, obs, opts, t_start)
     # A file that does not say how its values are encoded: both decodings are fitted.
@@ -149,6 +161,19 @@ def _checked_free(scene, free, psf) -> tuple:
     if "psf_sigma" in free and (psf is None or not gaussian):
         raise ValueError("psf_sigma is fitted only for a Gaussian PSF: give psf=<width in px>")
     return free
+
+
+def _checked_source(scene, source) -> SourceDistance | None:
+    """The fit's `SourceDistance`: the one given, else the scene's fixed radius (None
+    for a source at infinity)."""
+    if source is not None and not isinstance(source, SourceDistance):
+        raise ValueError(f"source_distance={source!r} must be a SourceDistance (e.g. "
+                         "jl.SourceDistance(radius=1e4)) or None (at infinity)")  # fmt: skip
+    own = getattr(scene, "source_distance", None)
+    if source is None and own is not None:
+        r = float(np.max(np.asarray(own)))
+        return None if math.isinf(r) else SourceDistance(radius=r)
+    return source
 
 
 def _options(obs: Observation, free: tuple, init, **settings) -> st.Options:
@@ -197,7 +222,15 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
         phys = {n: float(parameter(n).transform.forward(theta[i])) for i, n in enumerate(free)}
         fitted = apply(s.scene, {n: v for n, v in phys.items() if in_scene(n)})
     sol = Solution(theta, phys, r, jac, result, steps, model)
-    return diagnose(fitted, obs, seen, s, noise, sol, values, free, noise_seen, t_start)
+    f = diagnose(fitted, obs, seen, s, noise, sol, values, free, noise_seen, t_start)
+    f = dataclasses.replace(f, source_distance=opts.source)
+    if opts.source is not None and not f.source_radius >= f.distance:
+        note = (f"the source sphere (R = {f.source_radius:.6g} R_S) lies inside the camera's "
+                f"radius (D = {f.distance:.6g} R_S), which the model does not describe: it "
+                "holds a sphere at least as far from the hole as the camera (R >= D, "
+                "D_LS >= D_OL)")  # fmt: skip
+        f = dataclasses.replace(f, message="; ".join(m for m in (f.message, note) if m))
+    return f
 
 
 def _solve_call(s: st.Setup, settings: dict):

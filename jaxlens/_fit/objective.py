@@ -16,7 +16,7 @@ from .noise import Gaussian, clipped_slope
 from .observation import BOX_VARIANCE
 from .params import apply, in_scene, parameter
 from .solve import dense_least_squares, newton_decrement
-from .table import escape_table
+from .table import escape_table, source_table
 
 # The flux of the relativistic rings (order 1 and 2, radially a few thousandths of a
 # pixel wide) is a nuisance factor `ring_flux` (1: the exact area average), with a
@@ -88,7 +88,33 @@ def physical(u, sel: Select, prob: Problem):
             for i, n in enumerate(prob.names)}  # fmt: skip
 
 
-def model_image(p, scene, grid, otf, prob: Problem):
+class SourceSphere(eqx.Module):
+    """The radius of the sphere the model's source lies on, $R = $ `slope` $\\cdot D$ +
+    `offset` (units of R_S; `SourceDistance.linear`), arrays so that fits of sources
+    at different distances share their programs."""
+
+    slope: jax.Array
+    offset: jax.Array
+
+
+def source_sphere(source) -> SourceSphere | None:
+    """The `SourceSphere` of a `SourceDistance` (None, a source at infinity: the model
+    is then the one without it)."""
+    if source is None:
+        return None
+    slope, offset = source.linear()
+    return SourceSphere(to_device(slope, jnp.float64), to_device(offset, jnp.float64))
+
+
+def model_table(distance, source: SourceSphere | None, knots: int):
+    """The ray map of the model at `distance` (R_S): `escape_table`'s for a source at
+    infinity, `source_table`'s for one on the sphere of `source`."""
+    if source is None:
+        return escape_table(distance, knots=knots)
+    return source_table(distance, source.slope * distance + source.offset, knots=knots)
+
+
+def model_image(p, scene, grid, otf, prob: Problem, source: SourceSphere | None = None):
     """Grey model of the compared bins (before clipping), data units, one value a bin:
     the fine bins then the coarse blocks (one rule of order k for both), or with a PSF
     the regular grid of bins, each rendered as `prob.sub` x `prob.sub` sub-bins on a
@@ -103,7 +129,7 @@ def model_image(p, scene, grid, otf, prob: Problem):
                         [zero] * len(fields))  # fmt: skip
     p = {n: v for n, v in p.items() if n not in fields}
     scene = apply(scene, {n: v for n, v in p.items() if in_scene(n)})
-    table = escape_table(scene.camera.distance, knots=prob.knots)
+    table = model_table(scene.camera.distance, source, prob.knots)
     plan = _plan.plan(scene)
     refs = _kernel.ring_references(table, table.phi.dtype)
     rf = p["ring_flux"]
@@ -145,7 +171,8 @@ class Data(eqx.Module):
     """What the residuals take besides the parameters: the model's scene, the compared
     bins' grid (`model_image`), the PSF's OTF for a PSF image (else None), each bin's
     mean `data` and `weight` (the square root of its pixels; 0: left out), the noise
-    model with its level (`AbstractNoise.estimated`) and the parameters' `Select`."""
+    model with its level (`AbstractNoise.estimated`), the parameters' `Select` and the
+    source's sphere (`SourceSphere`; None: at infinity)."""
 
     scene: object
     grid: tuple
@@ -154,13 +181,14 @@ class Data(eqx.Module):
     weight: jax.Array
     noise: object
     sel: Select
+    source: SourceSphere | None = None
 
 
 def residuals_model(theta, d: Data, prob: Problem):
     """The residuals (noise units; a last one for the ring-flux prior, 0 when the flux
     is held) and the model."""
     u = internal(theta, d.sel)
-    m = model_image(physical(u, d.sel, prob), d.scene, d.grid, d.otf, prob)
+    m = model_image(physical(u, d.sel, prob), d.scene, d.grid, d.otf, prob, d.source)
     r = d.noise.residuals(m, d.data, d.weight)
     i = prob.names.index("ring_flux")
     prior = jnp.where(d.sel.free[i], (u[i] - 1.0) / RING_FLUX_PRIOR, 0.0)

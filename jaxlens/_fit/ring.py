@@ -30,6 +30,7 @@ def fit_ring(
     rtol: float = 1e-6,
     atol: float | None = None,
     max_steps: int = 100,
+    source_distance=None,
 ) -> Fit:
     """Fit the camera distance and field of view to an image of an Einstein ring.
 
@@ -68,6 +69,10 @@ def fit_ring(
       width allows) and the most bins compared (`fit`'s).
     - `knots`: of the escape-angle table (`escape_table`, a `RayMap`).
     - `rtol`, `atol`, `max_steps`: Levenberg-Marquardt settings (`fit`'s).
+    - `source_distance`: a `SourceDistance` placing the star on a sphere at a finite
+      distance behind the hole (its radius in R_S, or its distance behind the hole
+      with the observer's distance or the mass: `Fit.mass` or
+      `Fit.observer_distance` then measured); None: at infinity (`fit`'s).
 
     **Returns:** the `Fit` of `fit`, with `degenerate` also set when it did not
     converge (D and FOV are then not fixed). Raises `ValueError` for an unreadable or
@@ -89,6 +94,6 @@ def fit_ring(
     free += ("brightness", "floor", "ring_flux")
     f = fit(scene, obs, free=free, init=init, supersample=supersample, block=block,
             max_pixels=max_pixels, knots=knots, rtol=rtol, atol=atol,
-            max_steps=max_steps)  # fmt: skip
+            max_steps=max_steps, source_distance=source_distance)  # fmt: skip
     # A ring fit that did not converge fixes neither D nor FOV.
     return dataclasses.replace(f, degenerate=f.degenerate or not f.converged)

@@ -19,7 +19,7 @@ from . import starts
 from .arcs import find_arcs, source_offset_from_arcs
 from .model import samples_for
 from .noise import noise_estimate
-from .objective import Data, Problem, loss, select
+from .objective import Data, Problem, loss, select, source_sphere
 from .observation import Observation
 from .params import apply, floor_of, in_scene, parameter, values_of
 from .pixels import grid_sets, pixel_centres, pixel_edges, pixel_sets
@@ -44,6 +44,8 @@ class Options:
     rtol: float
     atol: float
     max_steps: int
+    # Where the source lies (`SourceDistance`; None: at infinity).
+    source: object = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -261,7 +263,7 @@ def build(obs: Observation, seen: Look, noise, scene: Scene, opts: Options, valu
     psf_kind = None if obs.psf is None else ("gaussian" if gaussian_psf(obs.psf) else "image")
     prob = Problem(names, b, k, pad, psf_kind, int(opts.knots), sub, point, centred=not turned)
     data = Data(model_scene, grid, otf, to_device(pix.data), to_device(pix.weight),
-                jax.tree.map(to_device, noise), sel)  # fmt: skip
+                jax.tree.map(to_device, noise), sel, source_sphere(opts.source))  # fmt: skip
     theta0 = np.asarray([parameter(n).transform.inverse(values[n]) for n in opts.free])
     return Setup(pix, k, model_scene, data, prob, theta0)
 
@@ -296,7 +298,8 @@ def starting_values(seen: Look, obs: Observation, scene: Scene, opts: Options, s
     values = starting_values_given(scene, obs, Options(**{**vars(opts), "init": {}}))
     ring_free = {"distance", "fov", "sigma", "brightness", "floor"} & set(free)
     if scan_d:
-        values |= init | _arcs_camera(arcs, w, init.get("sigma", values["sigma"]))
+        values |= init | _arcs_camera(arcs, w, init.get("sigma", values["sigma"]),
+                                      relation(opts))  # fmt: skip
     elif ring_free - set(init) and prof.peak > 8.0 * prof.peak_noise:
         sig = None if "sigma" in free else init.get("sigma", values["sigma"])
         ring_init = None
@@ -306,9 +309,10 @@ def starting_values(seen: Look, obs: Observation, scene: Scene, opts: Options, s
             # Arcs around a visible shadow: the ratio of their Einstein radius to the
             # shadow's fixes D (a centred ring's candidates can fit arcs at the wrong
             # distance: D 3.0, FOV 143 deg for D 20, FOV 60 deg).
-            ring_init = starts.distance_from_radii(arcs.ring_radius, arcs.shadow_radius, w)
+            ring_init = starts.distance_from_radii(arcs.ring_radius, arcs.shadow_radius, w,
+                                                   relation(opts))  # fmt: skip
         d_s, fov_s, sig_s, a_s, fl_s, *_ = starts.ring_start(seen.grey, prof, sig, ring_init,
-                                                             scale)  # fmt: skip
+                                                             scale, relation(opts))  # fmt: skip
         guess = {"distance": d_s, "fov": fov_s, "sigma": sig_s, "brightness": a_s, "floor": fl_s}
         # The ring start refines what `init` gives of D, FOV and sigma (its own
         # candidates), so those refined values stand; other given values win.
@@ -337,12 +341,18 @@ def starting_values_given(scene: Scene, obs: Observation, opts: Options) -> dict
     return values_of(scene) | extra | opts.init
 
 
-def _arcs_candidates(arcs, width: int, blur_px: float = 0.0):
+def relation(opts: Options) -> tuple | None:
+    """The ring relation's source: `(slope, offset)` of the source sphere's radius
+    (`SourceDistance.linear`), None for a source at infinity (`starts.ring_table`)."""
+    return None if opts.source is None else opts.source.linear()
+
+
+def _arcs_candidates(arcs, width: int, blur_px: float = 0.0, source=None):
     """Cameras along the exact ring relation that put the Einstein ring at the arcs'
     radius: `(distance, fov, focal, sigma)` arrays (R_S, radians, pixels, radians),
     sigma the star width the arcs' radial width implies (radial magnification 1/2 at
     the Einstein ring, the blur `blur_px` and the pixel removed in quadrature)."""
-    d, a_e, _, _ = starts.ring_table()
+    d, a_e, _, _ = starts.ring_table(source)
     f = arcs.ring_radius / np.tan(a_e)
     fov = 2.0 * np.arctan(0.5 * width / f)
     ok = (fov > math.radians(0.05)) & (fov < math.radians(179.0))
@@ -350,11 +360,11 @@ def _arcs_candidates(arcs, width: int, blur_px: float = 0.0):
     return d[ok], fov[ok], f[ok], 2.0 * intrinsic / f[ok]
 
 
-def _arcs_camera(arcs, width: int, sigma: float):
+def _arcs_camera(arcs, width: int, sigma: float, source=None):
     """A first `{"distance", "fov"}` for arcs with no shadow in view: the camera whose
     ring relation and radial magnification give arcs of the measured radius and width
     for a star of width `sigma` (radians); refined by `refine`'s distance scan."""
-    d, fov, _, sig = _arcs_candidates(arcs, width)
+    d, fov, _, sig = _arcs_candidates(arcs, width, source=source)
     i = int(np.argmin(np.abs(np.log(sig / sigma))))
     return {"distance": float(d[i]), "fov": float(fov[i])}
 
@@ -372,7 +382,7 @@ def _distance_scan(theta0, seen: Look, obs: Observation, s: Setup, opts: Options
     D from the arcs' radii, along their azimuth."""
     free, arcs = opts.free, seen.arcs
     blur = float(obs.psf.sigma_px) if gaussian_psf(obs.psf) else 0.0
-    d, fov, f, sig = _arcs_candidates(arcs, obs.shape[1], blur)
+    d, fov, f, sig = _arcs_candidates(arcs, obs.shape[1], blur, relation(opts))
     beta = np.asarray(source_offset_from_arcs(arcs, d, f), float)
     values = {"distance": d, "fov": fov, "source_lon": beta * math.cos(arcs.psi),
               "source_lat": beta * math.sin(arcs.psi), "sigma": sig}  # fmt: skip

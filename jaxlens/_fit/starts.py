@@ -17,32 +17,42 @@ from . import ring_table_data
 from .noise import clipped_mean, clipped_slope, clipping_bounds, noise_clipped, noise_level
 from .pixels import bin_means, pixel_centres, pixel_edges
 from .spd import solve_spd
-from .table import escape_table, solve_with_slope
+from .table import escape_table, solve_with_slope, source_table
 
 
-def compute_ring_table():
+def compute_ring_table(source: tuple | None = None):
     """$D$, $\\alpha_E$, $\\alpha_{sh}$ and $d\\Phi/d\\alpha$ at $\\alpha_E$ on 49 camera
     distances $1.9 \\dots 10^5$ (those whose ring lies inside 88 deg), computed: what
-    `ring_table_data` stores (numpy arrays; R_S, radians, radians, per radian)."""
+    `ring_table_data` stores (numpy arrays; R_S, radians, radians, per radian). With
+    `source`, `(slope, offset)` of a source sphere's radius $R = s D + R_0$
+    (`SourceDistance.linear`), the ring of a source on it (`source_table`), at the
+    distances with $R \\ge D$."""
     with jax.enable_x64(True):
         d = np.geomspace(1.9, 1e5, 49)
+        s, r0 = (0.0, math.inf) if source is None else source
 
         @jax.jit
         @jax.vmap
         def one(d):
-            table = escape_table(d, knots=2048)
+            if source is None:
+                table = escape_table(d, knots=2048)
+            else:
+                table = source_table(d, jnp.maximum(s * d + r0, d), knots=2048)
             a, slope = solve_with_slope(table, jnp.pi)
             ok = table.escape_angle(0.5 * jnp.pi) < jnp.pi
             return jnp.where(ok, a, jnp.nan), table.alpha_sh, slope
 
         a, sh, slope = (np.asarray(v) for v in one(jnp.asarray(d)))
-    ok = np.isfinite(a) & (a < math.radians(88.0))
+    ok = np.isfinite(a) & (a < math.radians(88.0)) & (s * d + r0 >= d)
     return d[ok], a[ok], sh[ok], slope[ok]
 
 
 @functools.cache
-def ring_table():
-    """The stored `compute_ring_table()` (`ring_table_data`), as numpy arrays."""
+def ring_table(source: tuple | None = None):
+    """The stored `compute_ring_table()` (`ring_table_data`), as numpy arrays; with
+    `source` (`(slope, offset)` of the source sphere's radius), computed for it."""
+    if source is not None:
+        return compute_ring_table(source)
     t = ring_table_data
     return tuple(np.asarray(v) for v in (t.DISTANCE, t.ALPHA_E, t.ALPHA_SH, t.SLOPE))
 
@@ -53,6 +63,9 @@ class _Setup(eqx.Module):
 
     half_width: float = eqx.field(static=True)
     knots: int = eqx.field(static=True)
+    # A source on a sphere (`args`' last entry its radius' slope and offset): the
+    # model's table is `source_table`'s (else `escape_table`'s, for a source at infinity).
+    finite: bool = eqx.field(static=True, default=False)
 
 
 # The start search's model is radial (a camera pointed at the hole, the star behind
@@ -162,18 +175,22 @@ def _candidate_losses(cands, halves, args, setup: _Setup, steps):
     (`_radial_weights`); for each kept bin the number of bins it stands for and the sum
     of their values and of their squares (over the scale); the scale; the clipping
     `(lo, hi, noise)`; 1.0 to fit sigma (0.0: sigma held at the candidate's; an
-    argument, so both kinds of fit share this program). `steps` (at least 1) is an
+    argument, so both kinds of fit share this program); the source sphere's radius'
+    `(slope, offset)` (read where `setup.finite`). `steps` (at least 1) is an
     argument too (one program for the short and the full refinement).
 
     **Returns:** loss (after the last step), fov, sigma, A and floor of each candidate.
     """
-    radial, (count, s1, s2), scale, clip, fit_sigma = args
+    radial, (count, s1, s2), scale, clip, fit_sigma, source = args
     lo, hi, noise = clip[0], clip[1], clip[2]
     hwhm = math.sqrt(2.0 * math.log(2.0))
 
     def one(c):
         d, fov = c[0], c[1]
-        table = escape_table(d, knots=setup.knots)
+        if setup.finite:
+            table = source_table(d, source[0] * d + source[1], knots=setup.knots)
+        else:
+            table = escape_table(d, knots=setup.knots)
         focal = setup.half_width / jnp.tan(0.5 * fov)
         phi_in = table.escape_angle(jnp.arctan(jnp.nan_to_num(halves[0], nan=1.0) / focal))
         phi_out = table.escape_angle(jnp.arctan(halves[1] / focal))
@@ -336,11 +353,11 @@ def radial_profile(img, noise: float | None = None) -> _Profile:
     )
 
 
-def _ring_candidates(prof: _Profile, width: int, sigma):
+def _ring_candidates(prof: _Profile, width: int, sigma, source=None):
     """(D, fov, sigma) along the exact ring relation: for each D of the table, the FOV
     that puts the ring at the measured radius; sigma is the known one, or NaN for the
     candidate program to take from the half-maximum radii."""
-    d, a_e, _, _ = ring_table()
+    d, a_e, _, _ = ring_table(source)
     focal = prof.ring_radius / np.tan(a_e)
     fov = 2.0 * np.arctan(0.5 * width / focal)
     sig = np.full_like(d, np.nan if sigma is None else sigma)
@@ -349,7 +366,7 @@ def _ring_candidates(prof: _Profile, width: int, sigma):
     return np.stack([np.where(ok, d, np.nan), np.where(ok, fov, 1.0), sig], -1)
 
 
-def _from_init(init, prof: _Profile, width: int, sigma):
+def _from_init(init, prof: _Profile, width: int, sigma, source=None):
     """Candidates from the starting values `init`: as given, and moved along one
     parameter onto the measured ring radius (ring relation interpolated in the table)."""
     try:
@@ -360,7 +377,7 @@ def _from_init(init, prof: _Profile, width: int, sigma):
             f"init={init!r} must be a dict with 'distance' (R_S) and 'fov' (radians) or 'fov_deg'"
         ) from e
     s0 = sigma if sigma is not None else init.get("sigma", np.nan)
-    d, a_e, _, _ = ring_table()
+    d, a_e, _, _ = ring_table(source)
     if not (d[0] <= d0 <= d[-1]) or not (0 < fov0 < math.pi):
         raise ValueError(
             f"init distance={d0!r} R_S must be in [{d[0]:.3g}, {d[-1]:.3g}] and fov={fov0!r} "
@@ -377,12 +394,12 @@ def _from_init(init, prof: _Profile, width: int, sigma):
     return np.asarray(out, float)
 
 
-def distance_from_radii(ring_px: float, shadow_px: float, width: int):
+def distance_from_radii(ring_px: float, shadow_px: float, width: int, source=None):
     """Starting `{"distance", "fov"}` from the Einstein ring's and the shadow's radii in
     pixels (a camera pointed at the hole): their ratio $\tan\alpha_E / \tan\alpha_{sh}$
     depends on D alone (it grows as ~0.54 sqrt(D)), and the ring's radius then fixes the
     focal length. `None` when the ratio lies outside the table ($D$ 1.9 ... 1e5)."""
-    d, a_e, sh, _ = ring_table()
+    d, a_e, sh, _ = ring_table(source)
     ratio = np.tan(a_e) / np.tan(sh)
     if not shadow_px > 0:  # a shadow found with no extent (a stretched image)
         return None
@@ -395,14 +412,14 @@ def distance_from_radii(ring_px: float, shadow_px: float, width: int):
     return {"distance": math.exp(ld), "fov": 2.0 * math.atan(0.5 * width * math.tan(a) / ring_px)}
 
 
-def _search_inputs(img, prof: _Profile, star_sigma, scale):
+def _search_inputs(img, prof: _Profile, star_sigma, scale, source=None):
     """The start search's model on the binned image: `(halves, args, setup, noise)` for
     `_candidate_losses` (`noise`: `(lo, hi, noise)`, the clipping bounds and the noise
     of one original pixel)."""
     h, w = img.shape
     coarse = max(1, round(min(h, w) / 40))
     cimg = bin_means(img, coarse)
-    setup0 = _Setup(0.5 * w, 1024)
+    setup0 = _Setup(0.5 * w, 1024, source is not None)
     radial, group, count = _radial_weights(w, h, coarse, prof.ring_width)
     y = cimg.ravel() / scale
     sums = (count, np.bincount(group, y), np.bincount(group, y * y))
@@ -412,7 +429,8 @@ def _search_inputs(img, prof: _Profile, star_sigma, scale):
     noise = noise_clipped(img, prof, lo, hi)
     clip0 = to_device(np.asarray([lo, hi, noise]) / scale)  # clipping acts per original pixel
     args0 = (radial, tuple(to_device(v, np.float64) for v in sums), to_device(scale), clip0,
-             to_device(float(star_sigma is None)))  # fmt: skip
+             to_device(float(star_sigma is None)),
+             to_device((0.0, 0.0) if source is None else source, np.float64))  # fmt: skip
     halves = to_device([prof.inner_half, prof.outer_half])
     return halves, args0, setup0, (lo, hi, noise)
 
@@ -424,20 +442,22 @@ def _rows(cands):
     return np.concatenate([extra, cands], axis=0)
 
 
-def ring_start(img, prof: _Profile, star_sigma, init, scale):
+def ring_start(img, prof: _Profile, star_sigma, init, scale, source=None):
     """Starting values of an Einstein-ring fit: candidates along the exact ring relation
     (and from `init`), each refined on a binned image with D held, the best by loss.
 
     **Returns:** `(distance, fov, sigma, brightness, floor, lo, hi, noise)`: R_S,
     radians, radians, data units; the clipping bounds of the stored values and the
-    noise of one original pixel (data units).
+    noise of one original pixel (data units). `source`: `(slope, offset)` of the
+    radius of the sphere the star lies on (`SourceDistance.linear`; None: at infinity).
     """
     w = img.shape[1]
-    halves, args0, setup0, (lo, hi, noise) = _search_inputs(img, prof, star_sigma, scale)
-    cands = _rows(_ring_candidates(prof, w, star_sigma))
+    halves, args0, setup0, (lo, hi, noise) = _search_inputs(img, prof, star_sigma, scale,
+                                                            source)  # fmt: skip
+    cands = _rows(_ring_candidates(prof, w, star_sigma, source))
     if init is not None:
         # Starting values in `init`: their own candidates only (the grid rows are skipped).
-        given = _from_init(init, prof, w, star_sigma)
+        given = _from_init(init, prof, w, star_sigma, source)
         cands[3:, 0] = np.nan
         cands[: len(given)] = given
     if not np.any(np.isfinite(cands[:, 0])):

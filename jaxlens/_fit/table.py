@@ -10,9 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .._exact import finite_crossings
 from .._messages import shown
 from .._ray_inputs import check_distance, check_dtype, check_real
-from .._raymap import RayMap, tabulate
+from .._raymap import RayMap, _difference_slopes, tabulate
 from .._util import concrete
 from .._weak import _C, _I_HALF, weak_field_terms
 
@@ -144,3 +145,30 @@ def solve_with_slope(table: RayMap, target: ArrayLike):
     """Where the escape angle of `table` equals `target` (radians), and
     $d\\Phi/d\\alpha$ there. **Returns:** `(alpha, slope)` (radians, per radian)."""
     return table.solve(target, with_slope=True)
+
+
+def source_table(distance: ArrayLike, radius: ArrayLike, *, knots: int = 4096) -> RayMap:
+    """The ray map the fit reads for a source on the sphere $r = R$ behind the camera
+    ($R \\ge D$): `escape_table`'s knots in $\\alpha$ (out to $\\pi/2$), their values the
+    azimuth $\\varphi_R(\\alpha)$ at which each ray crosses the sphere (`finite_crossings`,
+    at the table's 6 duplication steps) in place of the escape angle, the slopes by
+    the same fourth-order differences.
+
+    A ray from a camera at $D \\le R$ crosses the sphere once, after its periapsis (a
+    captured ray never), at the azimuth of the point whose direction from the hole the
+    sky's radiance is read in: so the renderer's area-exact cells, given this map,
+    draw a sky on the sphere, its thin rings included (where $\\varphi_R = 3\\pi, 5\\pi$),
+    with the shadow edge of the distance. Differentiable with respect to `distance`
+    (the knots through `escape_table`'s difference rule, the values by autodiff of the
+    closed form) and `radius` (units of R_S, scalars). A sphere inside the camera's
+    radius ($R < D$: two crossings) is not what this map holds; the fit flags it.
+    """
+    d = jnp.asarray(distance, jnp.result_type(float, distance))
+    r = jnp.asarray(radius, d.dtype)
+    base = escape_table(d, knots=knots)
+    alpha = base.alpha_sh + jnp.exp(base.tau)
+    phi = finite_crossings(alpha, d, r, iterations=6).first
+    # At R = inf the crossing is the escape angle: the map's own values, bit for bit.
+    phi = jnp.where(jnp.isinf(r), base.phi, phi)
+    return eqx.tree_at(lambda m: (m.phi, m.slope), base,
+                       (phi, _difference_slopes(phi, base.dtau)))  # fmt: skip
