@@ -172,6 +172,17 @@ def test_source_distance_takes_three_ways_and_refuses_the_rest():
         jl.fit(scene, np.zeros((H, W)), source_distance=40.0)
 
 
+def test_a_model_scenes_own_source_distance_is_a_fixed_radius():
+    from jaxlens._fit.general import _checked_source
+
+    sky = jl.GaussianStar(0.01) + jl.Uniform(0.0)
+    scene = jl.Scene(jl.Camera(D, 1.0, 8, 8), sky, source_distance=R)
+    assert _checked_source(scene, None) == jl.SourceDistance(radius=R)
+    given = jl.SourceDistance(radius=2 * R)
+    assert _checked_source(scene, given) is given  # the argument wins
+    assert _checked_source(jl.Scene(jl.Camera(D, 1.0, 8, 8), sky), None) is None
+
+
 def test_astropy_quantities_in_and_out(fitted):
     u = pytest.importorskip("astropy.units")
     d_ol = D * float(jl.schwarzschild_radius_m(MASS)) * u.m
@@ -224,3 +235,25 @@ def test_cli_source_distance(tmp_path, capsys, fitted):
     out = json.loads(_cli_fit._report(argparse.Namespace(json=True, images=[path]), path,
                                       fitted, None, d_ol))  # fmt: skip
     assert out["mass_msun"] == fitted.mass and out["distance_m"] == d_ol
+
+
+@pytest.mark.benchmark  # one more fit (~45 s on 2 cores): run by `make test-slow`
+def test_cli_fit_with_a_source_distance_measures_the_mass(tmp_path, capsys, ring, monkeypatch):
+    from jaxlens import cli
+
+    monkeypatch.setenv("JAXLENS_CACHE_DIR", "")  # no persistent cache from a test
+    path = jl.write_image(tmp_path / "ring.exr", ring, sampling="area")
+    d_ol = D * float(jl.schwarzschild_radius_m(MASS))
+    argv = ["fit", str(path), "--source-distance", f"{2.0 * d_ol / KPC!r}kpc",
+            "--distance-m", repr(d_ol), "--star-sigma-deg", str(SIGMA_DEG)]  # fmt: skip
+    assert cli.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "mass " in text and "M_sun" in text and "source R" in text
+    assert cli.main([*argv, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["valid"] is True, out["message"]
+    assert abs(out["distance"] - D) < 3 * out["distance_err"]
+    assert abs(out["mass_msun"] - MASS) < 3 * out["mass_msun_err"]
+    assert out["distance_m"] == pytest.approx(d_ol, rel=1e-12)
+    assert out["source_radius"] == pytest.approx(2.0 * out["distance"], rel=1e-12)
+    assert out["source_behind_m"] == pytest.approx(2.0 * d_ol, rel=1e-12)
