@@ -212,3 +212,23 @@ def test_scene_file_key_and_command_line_flag(tmp_path, capsys, monkeypatch):
     for value in ("0.5", "nan", "inf"):
         code, _, err = run(["render", "--source-distance", value, "-o", out], capsys)
         assert code == 2 and f"--source-distance {value} is not valid: expected a number > 1" in err
+
+
+def test_plane_crossings_meet_the_far_field_line():
+    # Far behind the hole a ray is a straight line at impact parameter b from it, along
+    # its asymptote: it meets the plane z = L at rho = -L tan(Phi) - b / cos(Phi) (the
+    # through-the-centre projection -L tan(Phi) of PlaneImage.at_distance, plus b /
+    # |cos Phi|). At L = 1e5 the rest of the bending beyond L is O(b / L) of the offset.
+    d, plane = 20.0, 1e5
+    alpha = np.asarray([0.1275, 0.16, 0.2, 0.3, 0.45])  # outside the shadow (0.1270)
+    hits = jl.plane_crossings(alpha, d, plane)
+    assert np.all(np.asarray(hits.hit))
+    phi_inf = np.asarray(jl.trace(alpha, d, method="exact").phi)
+    b = np.asarray(jl.impact_parameter(alpha, d))
+    phi = np.asarray(hits.phi)
+    assert np.allclose(-np.asarray(hits.radius) * np.cos(phi), plane, rtol=1e-12)
+    offset = -plane * np.tan(phi) + plane * np.tan(phi_inf)
+    assert np.allclose(offset, -b / np.cos(phi_inf), rtol=1e-3)
+    # Captured rays and rays whose asymptote heads toward the camera cross no plane.
+    none = jl.plane_crossings(np.asarray([0.05, 0.14, 2.5]), d, plane)  # Phi 5.06 at 0.14
+    assert not np.any(np.asarray(none.hit)) and np.all(np.asarray(none.radius) == 0)
