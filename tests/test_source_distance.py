@@ -24,6 +24,21 @@ def reference_crossings(alpha: float, distance: float, radius: float, dps: int =
         return [float(x) for x in mp_crossings(mp.mpf(alpha), mp.mpf(distance), mp.mpf(radius))]
 
 
+def _paths_outside(to_turn, u0, ur, u2, inward):
+    """The integrals along a ray from a camera outside the photon sphere (at u0) to
+    each of its crossings of u = `ur`, in order, from `to_turn(u)` (the integral from u
+    to the turning root u2): before the turning point, and after it."""
+    out = []
+    if inward:
+        if u0 < ur <= u2:
+            out.append(to_turn(u0) - to_turn(ur))
+        if ur <= u2:
+            out.append(to_turn(u0) + to_turn(ur))
+    elif ur < u0:
+        out.append(to_turn(ur) - to_turn(u0))
+    return out
+
+
 def mp_crossings(a, d, r):
     """`reference_crossings` at the working precision, for mpf arguments: mpf values."""
     dps = mp.mp.dps
@@ -45,15 +60,7 @@ def mp_crossings(a, d, r):
             g = lambda s: 2 / mp.sqrt((u2 - s * s - u1) * (u3 - u2 + s * s))  # noqa: E731
             return mp.quad(g, [0, mp.sqrt(u2 - u)])
 
-        out = []
-        if inward:
-            if u0 < ur <= u2:
-                out.append(to_turn(u0) - to_turn(ur))
-            if ur <= u2:
-                out.append(to_turn(u0) + to_turn(ur))
-        elif ur < u0:
-            out.append(to_turn(ur) - to_turn(u0))
-        return out
+        return _paths_outside(to_turn, u0, ur, u2, inward)
     if len(real) == 3:  # inside: u in [u3, 1]
         u1, u2, u3 = real
 
@@ -117,13 +124,7 @@ def mp_times(a, d, r):
                 return plain(0, u2 - w / 4) + mp.quad(g, [0, mp.mpf(1) / 2])
             return mp.quad(g, [0, 1])
 
-        if inward:
-            if u0 < ur <= u2:
-                out.append(to_turn(u0) - to_turn(ur))
-            if ur <= u2:
-                out.append(to_turn(u0) + to_turn(ur))
-        elif ur < u0:
-            out.append(to_turn(ur) - to_turn(u0))
+        out = _paths_outside(to_turn, u0, ur, u2, inward)
     elif inward and u0 < ur < 1:
         out.append(plain(u0, ur))
     elif not inward and ur < u0:
