@@ -10,6 +10,7 @@ from .._util import host_driver
 from .fit_result import Fit
 from .general import fit
 from .observation import observe
+from .source import SourceDistance
 
 
 def fit_ring(
@@ -30,7 +31,7 @@ def fit_ring(
     rtol: float = 1e-6,
     atol: float | None = None,
     max_steps: int = 100,
-    source_distance=None,
+    source_distance: SourceDistance | None = None,
 ) -> Fit:
     """Fit the camera distance and field of view to an image of an Einstein ring.
 
