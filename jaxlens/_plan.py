@@ -257,8 +257,8 @@ def _shell_geometry(scene, concrete: bool) -> tuple[str, str]:
             "sphere r = R, each ray crosses it once, after its periapsis, at an azimuth as "
             "smooth in tau as the escape angle: the ray map of (D, R) "
             "(RayMap.build(..., radius=R)), interpolated per ray, a look-up as cheap as the "
-            "sky at infinity's (the exact crossings per ray cost far more a frame: "
-            "benchmarks/results/source_distance.md)"
+            "sky at infinity's (the exact crossings per ray cost several times more a "
+            "frame: benchmarks/results/source_distance.md)"
         )
     if cam.sampling == "gauss":
         raise ValueError(
