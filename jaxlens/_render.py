@@ -347,7 +347,9 @@ def render_array(
     (radians, replaces the scene's); `plan`: a `Plan` to follow (default: `plan(scene)`
     for the whole image as one block; under tracing the safe one); `ray_map`: the
     `RayMap` of the camera's distance if built already (default: built inside, so
-    gradients with respect to the distance flow through the table); `psf`: a PSF, as
+    gradients with respect to the distance flow through the table; for a sky on a
+    sphere that the plan reads from a table, that of $(D, R)$:
+    `RayMap.build(D, radius=R)`); `psf`: a PSF, as
     in `render` (the frame rendered on the PSF's margin, blurred, cropped; gradients
     flow to the PSF's array fields too), or `None`. With a PSF, `plan` must be `None`
     (the enlarged frame is planned here).
