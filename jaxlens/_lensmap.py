@@ -375,7 +375,7 @@ def point_source_images_at(
     - `distance`: the camera's radius $D > 1.5$ (units of R_S; a camera inside the
       photon sphere sees sources at a finite distance along more branches than these).
     - `source_distance`: the source's radius $R > 1$ (units of R_S; `inf`: at
-      infinity). Broadcasts with the directions.
+      infinity). Broadcast to the directions' batch shape.
     - `order` (static, whole, $\\ge 0$): 0 for the primary and secondary images, $m$
       for the relativistic pair that winds $m$ more times.
 

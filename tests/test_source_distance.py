@@ -329,7 +329,7 @@ def mp_image(theta, distance, radius, order, side, alpha, dps=50):
         (1e4, 1e4, 1e-3, 0),  # weak field, the source as far behind as the camera before
         (20.0, math.inf, 0.5, 3),
         # Sgr A* (2.8e6 M_sun at 8.5 kpc), a star as far behind: the primary pair, and
-        # the fourth relativistic pair 1e-13 of the shadow angle off its edge.
+        # the fourth relativistic pair 8e-12 of the shadow angle off its edge.
         (SGR_A, SGR_A, 1e-7, 0),
         (SGR_A, SGR_A, 5.6e-7, 4),
     ],
