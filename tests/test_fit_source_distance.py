@@ -126,6 +126,14 @@ def test_a_ring_at_a_finite_distance_fitted_as_if_at_infinity_is_far_off(ring, f
     assert f.distance < 0.75 * D
 
 
+def test_a_sphere_inside_every_camera_distance_is_refused_by_name(ring):
+    # R = 1.5 R_S: no camera distance the start searches (D >= 1.9) has the sphere
+    # behind it, so no ring relation; the refusal names the sphere and the range.
+    said = r"ring of a source on the sphere R = 0 D \+ 1.5 R_S \(the model holds R >= D, and "
+    with pytest.raises(ValueError, match=said + "searches D from 1.9"):
+        jl.fit_ring(ring, supersample=3, source_distance=jl.SourceDistance(radius=1.5))
+
+
 def test_parse_length_accepts_units_and_refuses_others():
     kpc = jl.parse_length("8.5kpc")
     assert (kpc.value, kpc.unit, kpc.in_rs) == (8.5, "kpc", False)

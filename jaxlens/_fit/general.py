@@ -199,15 +199,24 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
         noise_seen = not noise.checked_for_white_noise or white_noise_found(seen.grey)[0]
         scan_d, scan_source = st.scans(seen, opts)
         early = _compile_early(obs, seen, noise, scene, opts, scan_d or scan_source)
-        scale = max(seen.prof.peak + seen.prof.floor, 1e-12)
-        values = st.starting_values(seen, obs, scene, opts, scale, scan_d)
-        if seen.found and {"yaw", "pitch"} & set(free):
-            # A hole off the image centre: its image as a camera turned toward it sees
-            # the arcs (the oblique projection moves the ring's centre).
-            arcs = find_arcs(obs.data, noise=seen.level[0], focal=st.focal(values["fov"], w))
-            seen = dataclasses.replace(seen, arcs=arcs, found=arcs.found)
-        centre = (seen.arcs.x_c, seen.arcs.y_c) if seen.found else (0.0, 0.0)
-        s = st.build(obs, seen, noise, scene, opts, values, st.focal(values["fov"], w), centre)
+        try:
+            scale = max(seen.prof.peak + seen.prof.floor, 1e-12)
+            values = st.starting_values(seen, obs, scene, opts, scale, scan_d)
+            if seen.found and {"yaw", "pitch"} & set(free):
+                # A hole off the image centre: its image as a camera turned toward it
+                # sees the arcs (the oblique projection moves the ring's centre).
+                arcs = find_arcs(obs.data, noise=seen.level[0],
+                                 focal=st.focal(values["fov"], w))  # fmt: skip
+                seen = dataclasses.replace(seen, arcs=arcs, found=arcs.found)
+            centre = (seen.arcs.x_c, seen.arcs.y_c) if seen.found else (0.0, 0.0)
+            s = st.build(obs, seen, noise, scene, opts, values, st.focal(values["fov"], w),
+                         centre)  # fmt: skip
+        except BaseException:
+            # The early compiles finish before the error leaves: a compile thread still
+            # running when the interpreter exits aborts it ("terminate called after
+            # throwing ...": a fit refused by its start, exit code 134 for 2).
+            early.wait()
+            raise
         settings = dict(rtol=opts.rtol, atol=opts.atol, max_steps=opts.max_steps)
         # The solver (where not compiled already) compiles on the second core while
         # the start's scans compile and run, and the noise check where a second pass

@@ -30,21 +30,28 @@ def compute_ring_table(source: tuple | None = None):
     with jax.enable_x64(True):
         d = np.geomspace(1.9, 1e5, 49)
         s, r0 = (0.0, math.inf) if source is None else source
-
-        @jax.jit
-        @jax.vmap
-        def one(d):
-            if source is None:
-                table = escape_table(d, knots=2048)
-            else:
-                table = source_table(d, jnp.maximum(s * d + r0, d), knots=2048)
-            a, slope = solve_with_slope(table, jnp.pi)
-            ok = table.escape_angle(0.5 * jnp.pi) < jnp.pi
-            return jnp.where(ok, a, jnp.nan), table.alpha_sh, slope
-
-        a, sh, slope = (np.asarray(v) for v in one(jnp.asarray(d)))
+        out = _ring_relation(jnp.asarray(d), jnp.asarray(s), jnp.asarray(r0), source is not None)
+        a, sh, slope = (np.asarray(v) for v in out)
     ok = np.isfinite(a) & (a < math.radians(88.0)) & (s * d + r0 >= d)
     return d[ok], a[ok], sh[ok], slope[ok]
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _ring_relation(d, s, r0, finite: bool):
+    """`compute_ring_table`'s values at the distances `d`: one program for every
+    source sphere (`s`, `r0` arguments; `finite`: `source_table`'s map, else
+    `escape_table`'s)."""
+
+    def one(d):
+        if finite:
+            table = source_table(d, jnp.maximum(s * d + r0, d), knots=2048)
+        else:
+            table = escape_table(d, knots=2048)
+        a, slope = solve_with_slope(table, jnp.pi)
+        ok = table.escape_angle(0.5 * jnp.pi) < jnp.pi
+        return jnp.where(ok, a, jnp.nan), table.alpha_sh, slope
+
+    return jax.vmap(one)(d)
 
 
 @functools.cache
@@ -461,9 +468,15 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale, source=None):
         cands[3:, 0] = np.nan
         cands[: len(given)] = given
     if not np.any(np.isfinite(cands[:, 0])):
+        sphere = ""
+        if source is not None:
+            d = ring_table()[0]
+            sphere = (f" of a source on the sphere R = {source[0]:.6g} D + {source[1]:.6g} "
+                      f"R_S (the model holds R >= D, and searches D from {d[0]:g} to "
+                      f"{d[-1]:g})")  # fmt: skip
         raise ValueError(
-            f"no camera distance puts an Einstein ring at {prof.ring_radius:.3g} pixels "
-            f"from the centre of a {w}-pixel-wide image"
+            f"no camera distance puts an Einstein ring{sphere} at {prof.ring_radius:.3g} "
+            f"pixels from the centre of a {w}-pixel-wide image"
         )
 
     def losses(c, steps):
