@@ -48,7 +48,7 @@ from ._exact import finite_crossings, shadow_angle
 from ._fastmath import sin_cos
 from ._messages import cut
 from ._ray_inputs import _MAX_COMPARED, MAX_DISTANCE
-from ._sky import AbstractCompactSky, SkySum
+from ._sky import AbstractCompactSky, SkySum, plane_crossings
 from ._sky._base import rgb_shift_power
 from ._trace import trace
 from ._util import fusion_barrier
@@ -124,6 +124,12 @@ def _checks(scene, xp, dtype=None):
         r_in, r_out = (xp.asarray(r).astype(dt) for r in (scene.disk.r_in, scene.disk.r_out))
         out.append((lambda s: s.disk.r_in, ~(r_in > 1.5) | ~(r_in < r_out) | ~xp.isfinite(r_out),
                     "disk radii must satisfy 1.5 < r_in < r_out < inf (units of R_S)"))  # fmt: skip
+    if scene.source_plane is not None:
+        plane = xp.asarray(scene.source_plane).astype(dt)
+        out.append((lambda s: s.source_plane,
+                    ~xp.isfinite(plane) | ~(plane > 0.0) | (plane > _MAX_COMPARED),
+                    f"source plane must be > 0 and at most {MAX_DISTANCE:g} (units of "
+                    "R_S)"))  # fmt: skip
     if scene.source_distance is not None:
         r = xp.asarray(scene.source_distance).astype(dt)
         out.append((lambda s: s.source_distance,
@@ -248,6 +254,13 @@ def _geometry(scene, plan, ray_map, x, y):
             phi, cover = _shell_crossings(scene, alpha, cover, edge)
             if g is not None:
                 g = jnp.broadcast_to(g, phi.shape)
+        elif plan.geometry == "plane":
+            hits = plane_crossings(edge, cam.distance.astype(dt),
+                                   jnp.asarray(scene.source_plane).astype(dt))  # fmt: skip
+            phi, cover = hits.phi, cover * hits.hit
+            if g is not None:  # a static emitter at the crossing's radius
+                r = jnp.where(hits.hit, hits.radius, 2.0)
+                g = g * jnp.sqrt((r - 1.0) / r)
         else:
             phi = _escape_angle(scene, plan, ray_map, edge)
     sin_phi, cos_phi = sin_cos(phi)

@@ -53,7 +53,8 @@ class Plan:
     **Fields:**
     - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$), or
       `"crossings"` (a sky on a sphere, `Scene.source_distance`: the exact crossings of
-      it per ray; a sphere beyond the camera is read from its `"table"`).
+      it per ray; a sphere beyond the camera is read from its `"table"`), or `"plane"`
+      (`Scene.source_plane`: each ray's exact crossing of the plane).
     - `aberration`: `None`, `"radial"` or `"boost"`; `redshift`: `None`,
       `"bolometric"` or `"spectral"`; `disk`: whether disk rays are traced.
     - `disk_rays`: rays a block follows through the disk plane (`None`: all, masked);
@@ -361,7 +362,21 @@ def _plan(scene, chunk_samples):
                 b["frames"], b["rows"], b["pair"], b["blocks"], b["samples"], None, ())  # fmt: skip
 
     weak_bound = None
-    if scene.source_distance is not None:
+    if scene.source_plane is not None:
+        if gauss or scene.method not in ("auto", "trace"):
+            raise ValueError(
+                "source_plane needs each ray's exact plane crossing: uniform sampling and "
+                f"method='auto' or 'trace' (got sampling={cam.sampling!r}, method="
+                f"{scene.method!r})"
+            )
+        geometry = "plane"
+        reasons.append(
+            "source_plane L: the sky is read in the direction from the hole to each ray's "
+            "outward crossing of the plane z = L (plane_crossings: Newton's method on the "
+            "radius of the crossing sphere, an exact crossing a step); "
+            "PlaneImage.at_distance(image, S, L) draws a picture S wide on it"
+        )
+    elif scene.source_distance is not None:
         geometry, why = _shell_geometry(scene, concrete)
         reasons.append(why)
     elif gauss:

@@ -320,6 +320,23 @@ def _source_distance(r):
     return as_float(r)
 
 
+def _source_plane(plane):
+    """`Scene.source_plane` as given: `None`, else a float array of shape `()` checked
+    where concrete: $0 < L \\le$ `MAX_DISTANCE` (units of R_S), a `ValueError` naming
+    the value otherwise."""
+    if plane is None:
+        return None
+    plane = check_real("source_plane", plane)
+    c = concrete(plane)
+    if c is not None:
+        c = np.asarray(c, np.float64)
+        if c.shape != () or not (c > 0.0 and c <= MAX_DISTANCE):
+            raise ValueError(f"source_plane={shown(c)} is not valid: it must be one number > 0 "
+                             f"and at most {MAX_DISTANCE:g} (units of R_S: the distance of "
+                             "the plane behind the hole)")  # fmt: skip
+    return as_float(plane)
+
+
 def _camera_of(cam: dict, *, dtype=None) -> Camera:
     rad = math.radians
     return Camera(
@@ -366,6 +383,12 @@ class Scene(eqx.Module):
       ray's crossings of $r = R$ (at most two: inward, then outward after its
       periapsis) add the sky's radiance in the direction from the hole to the
       crossing point. An array leaf: differentiable, traced in a fit.
+    - `source_plane`: `None`, or the distance $L > 0$ (units of R_S) of a plane
+      perpendicular to the line of sight behind the hole that carries the sky: the sky
+      is called with the direction from the hole to each ray's outward crossing of
+      $z = L$ (`plane_crossings`), so that `PlaneImage.at_distance(image, S, L)` draws
+      a picture $S$ wide on that plane exactly. Not with `source_distance`, a disk or
+      `sampling="gauss"`.
     - `accuracy` (static): the error allowed in the escape angle (radians).
     - `method` (static): `"auto"` (the plan chooses the source of the escape angle),
       or force `"table"`, `"weak_field"` or `"trace"`.
@@ -380,6 +403,7 @@ class Scene(eqx.Module):
     redshift: Redshift | None = None
     disk: Disk | None = None
     source_distance: jax.Array | None = eqx.field(default=None, converter=_source_distance)
+    source_plane: jax.Array | None = eqx.field(default=None, converter=_source_plane)
     accuracy: float = eqx.field(static=True, default=1e-8)
     method: str = eqx.field(static=True, default="auto")
     exposure: float = eqx.field(static=True, default=0.0)
@@ -405,6 +429,12 @@ class Scene(eqx.Module):
                 self.motion.check_distance(d)
         if self.disk is not None and self.source_distance is not None:
             check_disk_shell(self)
+        if self.source_plane is not None:
+            if self.source_distance is not None:
+                raise ValueError("give source_distance (a sphere) or source_plane (a plane), "
+                                 "not both")  # fmt: skip
+            if self.disk is not None:
+                raise ValueError("source_plane with a Disk is not supported (docs/limits.md)")
 
     def replace(self, **changes) -> "Scene":
         """A copy with the given fields replaced (e.g. `scene.replace(disk=None)`)."""

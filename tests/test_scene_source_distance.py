@@ -232,3 +232,28 @@ def test_plane_crossings_meet_the_far_field_line():
     # Captured rays and rays whose asymptote heads toward the camera cross no plane.
     none = jl.plane_crossings(np.asarray([0.05, 0.14, 2.5]), d, plane)  # Phi 5.06 at 0.14
     assert not np.any(np.asarray(none.hit)) and np.all(np.asarray(none.radius) == 0)
+
+
+def test_a_picture_on_a_plane_behind_the_hole():
+    cam = jl.Camera(D, math.radians(60.0), 24, 16)
+    yy, xx = np.mgrid[0:16, 0:16] / 15.0
+    picture = np.stack([xx, yy, 0.5 + 0.0 * xx], axis=-1)  # smooth, so nearness shows
+    plane_distance = 200.0
+    sky = jl.PlaneImage.at_distance(picture, 300.0, plane_distance)
+    scene = jl.Scene(cam, sky, source_plane=plane_distance)
+    assert jl.plan(scene).geometry == "plane"
+    exact = jl.render(scene)
+    sphere = jl.render(jl.Scene(cam, sky, source_distance=plane_distance))
+    at_inf = jl.render(jl.Scene(cam, sky))
+    lit = exact.sum(-1) > 0
+    assert np.all(np.isfinite(exact)) and lit.sum() > 100
+    # Read at the ray's crossing of the sphere r = L, the picture is off by about
+    # (rho/L)^2 b/2 on the plane; read along the asymptote through the hole's centre,
+    # by b/|cos Phi| (PHYSICS: b >= 2.6): an order of magnitude more here.
+    near = np.abs(exact - sphere)[lit].mean()
+    far = np.abs(exact - at_inf)[lit].mean()
+    assert near < 0.2 * far, (near, far)
+    with pytest.raises(ValueError, match="source_plane=0.0 is not valid"):
+        jl.Scene(cam, sky, source_plane=0.0)
+    with pytest.raises(ValueError, match="not both"):
+        jl.Scene(cam, sky, source_plane=plane_distance, source_distance=plane_distance)
