@@ -26,7 +26,11 @@ class PlaneImage(AbstractRGBSky):
     A picture of physical width $S$ on a plane at distance $L$ behind the hole (the
     original C++ program's background) is `PlaneImage.at_distance(image, S, L)`:
     width $= 2\\arctan(S / 2L)$; this takes each ray's asymptote through the hole's
-    centre, exact when $L$ is large against the rays' impact parameters.
+    centre, exact when $L$ is large against the rays' impact parameters (off by
+    $b/|\\cos\\Phi|$ on the plane). In a `Scene(..., source_plane=L)` it is read at
+    each ray's exact crossing of the plane (`plane_crossings`), and with
+    `source_distance=L` at its crossing of the sphere $r = L$, off by about
+    $(\\rho/L)^2 b/2$ at a point $\\rho$ from the axis.
 
     **Fields:** `image (h, w, 3)` linear radiance (finite), `width` (radians, full
     horizontal angle, in $(0, \\pi)$), `brightness` (scale, in [0, 1e30]), `yaw`,
