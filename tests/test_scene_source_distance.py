@@ -117,6 +117,11 @@ def test_hard_radii_render_finite():
     # shadow, none outside it (the centre pixels see the sky, the corners do not).
     img = jl.render(jl.Scene(cam, SMOOTH, source_distance=1.3))
     assert img[H // 2, W // 2].sum() > 0 and img[0, 0].sum() == 0
+    # The exact crossings in float32: sky directions to ~1e-6 rad (the closed form's
+    # float32 floor) against float64, the sky's slope ~2 a radian: 1e-5 of the peak.
+    inner = jl.Scene(cam, SMOOTH, source_distance=10.0)
+    ref = jl.render(inner)
+    assert np.max(np.abs(jl.render(inner, dtype="float32") - ref)) <= 1e-5 * np.max(ref)
 
 
 @pytest.mark.parametrize("radius", [0.5, 1.0, math.nan, -math.inf, 1e31])
