@@ -464,19 +464,23 @@ def finite_crossings(alpha, distance, rr, *, iterations: int = 12, max_windings:
     u1, u2, e2, e3, _, d32, d21, d31 = real_roots(st, kt)
     outside = e0 < 0
 
+    tiny = jnp.finfo(dtype).tiny
+
     def factors(u, e):  # sqrt|u - u_i| at a point, the turning root's left for later
-        return jnp.sqrt(u - u1), jnp.sqrt(jnp.abs(e - e2)), jnp.sqrt(jnp.abs(e - e3))
+        # (floored at tiny: a point on a root, whose factor is replaced or multiplies
+        # zero, keeps a finite derivative, which `where` would otherwise turn to NaN)
+        return (jnp.sqrt(u - u1), jnp.sqrt(jnp.maximum(jnp.abs(e - e2), tiny)),
+                jnp.sqrt(jnp.maximum(jnp.abs(e - e3), tiny)))  # fmt: skip
 
     c1, c2, c3 = factors(u0, e0)
     # The camera's factor at its turning root, through sqrt(P(u0)) (exact from alpha).
-    tiny = jnp.finfo(dtype).tiny
     c2 = jnp.where(outside, sg / jnp.maximum(c1 * c3, tiny), c2)
     c3 = jnp.where(outside, c3, sg / jnp.maximum(c1 * c2, tiny))
     s1, s2, s3 = factors(ur, er)
     # |u_R - u2| from the offsets to 2/3 where u2 is near it (a ray near the photon
     # sphere), else directly: in the far field both are small, and their offsets from
     # 2/3 would keep only float32's 6e-8 of them absolutely.
-    s2 = jnp.where(e2 > -1.0 / 3.0, s2, jnp.sqrt(jnp.abs(u2 - ur)))
+    s2 = jnp.where(e2 > -1.0 / 3.0, s2, jnp.sqrt(jnp.maximum(jnp.abs(u2 - ur), tiny)))
     d_tp = jnp.where(outside, d21, d31)
     t_cam = _turning_integral(jnp.where(outside, c2, c3), c1, jnp.where(outside, c3, c2), d32,
                               d_tp, iterations)  # fmt: skip
@@ -613,7 +617,8 @@ def crossing_times(alpha, distance, radius, *, iterations: int = 12, _kappa=None
     sg = jnp.abs(root * ca / sa_)
     tiny = jnp.finfo(dtype).tiny
     sw0 = sg / jnp.maximum(jnp.sqrt((u0 - u1) * jnp.abs(e0 - e3)), tiny)
-    swr = jnp.where(e2 > -1.0 / 3.0, jnp.sqrt(jnp.abs(er - e2)), jnp.sqrt(jnp.abs(u2 - ur)))
+    gap_r = jnp.where(e2 > -1.0 / 3.0, jnp.abs(er - e2), jnp.abs(u2 - ur))  # u2 - u_R
+    swr = jnp.sqrt(jnp.maximum(gap_r, tiny))
     j0 = _remainder_to_turning(sw0 * sw0, sw0, d21, d32, b_, dtype)
     jr = _remainder_to_turning(swr * swr, swr, d21, d32, b_, dtype)
     # A(u) = -(r + ln(r - 1)) at the camera, the sphere and the periapsis.

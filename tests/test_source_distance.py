@@ -440,3 +440,15 @@ def test_time_delays_between_orders_and_in_the_weak_field():
     # Seconds for a mass: 2 G M / c^3 per R_S / c.
     np.testing.assert_allclose(got.delay_seconds(4.0e6)[0], got.time[0] * 4.0e6 * 9.85e-6,
                                rtol=1e-3)  # fmt: skip
+
+
+def test_reverse_mode_gradients_are_finite_on_a_grid_through_the_turning_point():
+    # A ray that starts at its turning point (alpha = pi/2 exactly, a knot of a uniform
+    # grid) once gave NaN in reverse mode: the factor it does not use had an infinite
+    # derivative, which `where` multiplied by zero.
+    a = jnp.linspace(0.0, math.pi, 65)
+    assert float(a[32]) == math.pi / 2
+    for r in (40.0, 10.0):
+        g = jax.grad(lambda d, r=r: jl.radius_crossings(a, d, r).first.sum())(20.0)
+        ga = jax.vmap(jax.grad(lambda x, r=r: jl.radius_crossings(x, 20.0, r).first))(a)
+        assert np.isfinite(float(g)) and bool(jnp.all(jnp.isfinite(ga))), r
