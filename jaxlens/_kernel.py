@@ -13,10 +13,11 @@ under `grad`) is this function on a block of rows, with the stages its `Plan` na
    (`RayMap`, built once per distance), the weak-field series, or the exact closed
    form per ray (`trace`). For a sky on a sphere $r = R$ (`Scene.source_distance`):
    the azimuth of its crossing from the ray map of $(D, R)$ ($R > D$), or each ray's
-   exact crossings (`"crossings"`, up to two, their radiance added). Samples that
-   straddle the shadow edge are weighted by the fraction of their footprint outside
-   it (a linear ramp over one sample in $\\alpha$), so the edge carries gradient with
-   respect to distance and field of view.
+   exact crossings (`"crossings"`, up to two, their radiance added; `"crossing"`,
+   the one of a sphere beyond the camera). Samples that straddle the shadow edge are
+   weighted by the fraction of their footprint outside it (a linear ramp over one
+   sample in $\\alpha$), so the edge carries gradient with respect to distance and
+   field of view.
 5. **sky**: the sky's radiance in the escaping directions (frequency-shifted if asked).
 6. **disk**: rays that can reach the disk are followed through its plane.
 7. the mean over each pixel's samples.
@@ -219,6 +220,10 @@ def _escape_angle(scene, plan, ray_map, alpha):
         return ray_map.escape_angle(alpha)
     if plan.geometry == "weak_field":
         return weak_field_series(alpha, d)[0]  # the scene's values are checked
+    if plan.geometry == "crossing":  # the one crossing of a sphere beyond the camera
+        dt = alpha.dtype
+        r = jnp.asarray(scene.source_distance).astype(dt)
+        return finite_crossings(alpha, d.astype(dt), r).first
     return trace(alpha, d, accuracy=scene.accuracy, method="exact").phi
 
 

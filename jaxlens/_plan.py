@@ -13,8 +13,9 @@ concrete) its values:
   small enough that the table's build is not amortised); or `"trace"`, the exact
   closed form per ray, when the scene forces it; for a sky on a sphere
   (`Scene.source_distance` $R$): the ray map of $(D, R)$ where $R \\ge 1.25 D$ and
-  $D \\ge 1.5$ (one crossing a ray), else `"crossings"`: each ray's crossings of it,
-  exact per ray.
+  $D \\ge 1.5$ (one crossing a ray), `"crossing"` (that one crossing, exact per ray)
+  for a nearer sphere beyond the camera, else `"crossings"`: each ray's crossings of
+  it (up to two), exact per ray.
   A scene that forces `"weak_field"`
   keeps its accuracy: where the series' bound over the view is not below it (or cannot
   be computed, the camera's values traced), `plan` raises a `ValueError` with the bound
@@ -53,7 +54,8 @@ class Plan:
     **Fields:**
     - `geometry`: `"table"`, `"weak_field"` or `"trace"` (the source of $\\Phi$), or
       `"crossings"` (a sky on a sphere, `Scene.source_distance`: the exact crossings of
-      it per ray; a sphere beyond the camera is read from its `"table"`), or `"plane"`
+      it per ray, up to two; `"crossing"`: the one crossing of a sphere beyond the
+      camera; a sphere at $R \\ge 1.25 D$ is read from its `"table"`), or `"plane"`
       (`Scene.source_plane`: each ray's exact crossing of the plane).
     - `aberration`: `None`, `"radial"` or `"boost"`; `redshift`: `None`,
       `"bolometric"` or `"spectral"`; `disk`: whether disk rays are traced.
@@ -275,15 +277,23 @@ def _shell_geometry(scene, concrete: bool) -> tuple[str, str]:
             "the weak-field series the escape angle at infinity): use method='auto' or "
             "'trace'"
         )
+    if r is not None and np.all(r > d) and np.all(d >= 1.5):
+        why = (
+            "method='trace' forced by the scene" if scene.method == "trace" else
+            f"R = {float(r):g} < {SHELL_TABLE_MIN:g} D: the ray map of (D, R) would miss "
+            "the accuracy where the crossing bends sharply (alpha near pi/2)"
+        )  # fmt: skip
+        return "crossing", (
+            f"source_distance: the sky lies on the sphere r = R > D; {why}: each ray's one "
+            "crossing of it, after its periapsis, from the exact closed form per ray "
+            "(finite_crossings), the sky evaluated once a ray"
+        )
     if scene.method == "trace":
         why = "method='trace' forced by the scene"
     elif r is None:
         why = "the distances are traced, so whether R > D is not known"
     elif not np.all(d >= 1.5):
         why = "the camera is inside the photon sphere (rays inside the shadow cross R too)"
-    elif np.all(r > d):
-        why = (f"R = {float(r):g} < {SHELL_TABLE_MIN:g} D: the ray map of (D, R) would miss "
-               "the accuracy where the crossing bends sharply (alpha near pi/2)")  # fmt: skip
     else:
         why = f"R = {float(r):g} <= D: rays cross the sphere twice, in and out"
     return "crossings", (
