@@ -159,10 +159,9 @@ def source_table(distance: ArrayLike, radius: ArrayLike, *, knots: int = 4096) -
     sky's radiance is read in: so the renderer's area-exact cells, given this map,
     draw a sky on the sphere, its thin rings included (where $\\varphi_R = 3\\pi, 5\\pi$),
     with the shadow edge of the distance. Differentiable in forward mode (the fit's
-    Jacobian) with respect to `distance` (the knots through `escape_table`'s
-    difference rule, the values by autodiff of the closed form) and `radius` (units of
-    R_S, scalars); reverse mode gives NaN, from `finite_crossings` at the knots nearest
-    the shadow's edge (1e-13 of the shadow angle from it). A sphere inside the
+    Jacobian) and in reverse mode with respect to `distance` (the knots through
+    `escape_table`'s difference rule, the values by autodiff of the closed form) and
+    `radius` (units of R_S, scalars). A sphere inside the
     camera's radius ($R < D$: two crossings) is not what this map holds; the fit flags
     it.
     """
