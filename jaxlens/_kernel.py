@@ -45,11 +45,11 @@ import numpy as np
 
 from . import _area, _disk, _effects, _limits
 from ._camera import view_angles
-from ._exact import finite_crossings, shadow_angle
+from ._exact import finite_crossings, plane_crossings, shadow_angle
 from ._fastmath import sin_cos
 from ._messages import cut
 from ._ray_inputs import _MAX_COMPARED, MAX_DISTANCE
-from ._sky import AbstractCompactSky, SkySum, plane_crossings
+from ._sky import AbstractCompactSky, SkySum
 from ._sky._base import rgb_shift_power
 from ._trace import trace
 from ._util import fusion_barrier

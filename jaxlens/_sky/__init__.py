@@ -22,9 +22,7 @@ from ._base import (
 from .star import GaussianStar as GaussianStar
 from .starfield import StarField as StarField
 from .panorama import Panorama as Panorama
-from .plane import PlaneCrossings as PlaneCrossings
 from .plane import PlaneImage as PlaneImage
-from .plane import plane_crossings as plane_crossings
 from .checker import Checker as Checker
 from .default import DefaultSky as DefaultSky
 from .uniform import Uniform as Uniform

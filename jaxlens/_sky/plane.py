@@ -2,7 +2,7 @@
 
 import math
 from pathlib import Path
-from typing import ClassVar, NamedTuple
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -98,79 +98,6 @@ class PlaneImage(AbstractRGBSky):
         i0, j0 = u0.astype(jnp.int32), v0.astype(jnp.int32)
         val = bilinear(framed, j0, i0, u - u0, v - v0, dt)
         return self.brightness.astype(dt) * jnp.where(front[..., None], val, 0.0)
-
-
-class PlaneCrossings(NamedTuple):
-    """Where rays from a static camera cross the plane $z = L$ behind the hole, on
-    their way out (`plane_crossings`).
-
-    **Fields:** `phi`: the azimuth swept from the camera to the crossing point, in the
-    ray's orbital plane (radians: the point lies in the direction at `phi` from the
-    hole->camera axis, a sky direction as for a sky at infinity); `radius`: its distance
-    from the hole (units of R_S); `hit`: whether the ray crosses the plane outward (it
-    escapes, its asymptote heads behind the hole, and Newton's iteration converged).
-    Where `hit` is false both values are 0.
-    """
-
-    phi: Array
-    radius: Array
-    hit: Array
-
-
-def plane_crossings(alpha, distance, plane_distance, *, steps: int = 12) -> PlaneCrossings:
-    """Exact outward crossings of the plane $z = L$ (perpendicular to the line of sight,
-    `plane_distance` $L$ behind the hole) by rays from a static camera at `distance`.
-
-    The point where a ray leaves through the plane lies on the sphere of some radius
-    $R$, at the azimuth $\\varphi_R$ of the ray's outward crossing of that sphere
-    (`radius_crossings`: its only crossing for $R \\ge D$, its second for $R < D$);
-    Newton's method solves $-R\\cos\\varphi_R = L$ for $R$ (the slope from
-    $d\\varphi/dr = u^2/\\sqrt{1/b^2 - u^2 + u^3}$, $u = 1/r$), from the point where
-    the ray's asymptote, taken through the hole's centre, meets the plane: what
-    `PlaneImage.at_distance` reads.
-    The direction from the hole to that point, given to a `PlaneImage.at_distance` of
-    the same $L$, is the picture's exact point (its gnomonic projection is the plane's).
-
-    **Arguments:** `alpha` (local angle, radians), `distance` $D > 1$ and
-    `plane_distance` $L > 0$ (units of R_S), broadcasting; `steps` (static): Newton
-    steps (the iteration converges quadratically from an error of order $b/L$).
-
-    **Returns:** `PlaneCrossings(phi, radius, hit)`.
-    """
-    from .._exact import ESCAPED, escape_angle, finite_crossings, impact_parameter
-
-    alpha, d, plane = jnp.broadcast_arrays(
-        *(jnp.asarray(v, jnp.result_type(float, alpha, distance, plane_distance))
-          for v in (alpha, distance, plane_distance))
-    )  # fmt: skip
-    phi_inf, status, r_min = escape_angle(alpha, d)
-    heads_behind = (status == ESCAPED) & (jnp.cos(phi_inf) < 0)
-    c0 = jnp.where(heads_behind, -jnp.cos(phi_inf), 1.0)
-    # The crossing of the outgoing branch lies beyond the periapsis.
-    floor = r_min * (1.0 + 1e-6)
-
-    def crossing(r):  # the azimuth of the outward crossing of r = R
-        c = finite_crossings(alpha, d, r)
-        return jnp.where(r >= d, c.first, c.second)
-
-    inv_b2 = 1.0 / impact_parameter(alpha, d) ** 2
-
-    def step(_, r):
-        phi = crossing(r)
-        # On the way out d(phi)/dr = u^2 / sqrt(G(u)), G = 1/b^2 - u^2 + u^3, u = 1/r.
-        u = 1.0 / r
-        dphi = u * u / jnp.sqrt(jnp.maximum(inv_b2 - u * u * (1.0 - u), jnp.finfo(u.dtype).tiny))
-        z = -r * jnp.cos(phi)
-        dz = -jnp.cos(phi) + r * jnp.sin(phi) * dphi
-        new = r - (z - plane) / jnp.where(dz > 0, dz, 1.0)
-        return jnp.where(heads_behind & (dz > 0), jnp.maximum(new, floor), r)
-
-    r = jnp.maximum(plane / c0, floor)
-    r = jax.lax.fori_loop(0, steps, step, r)
-    phi = crossing(r)
-    tol = 1e4 * jnp.finfo(r.dtype).eps  # relative: 2e-12 in float64, 1e-3 in float32
-    hit = heads_behind & (jnp.abs(-r * jnp.cos(phi) - plane) <= tol * jnp.maximum(plane, r))
-    return PlaneCrossings(jnp.where(hit, phi, 0.0), jnp.where(hit, r, 0.0), hit)
 
 
 def _check(where: str, fields: dict) -> None:
