@@ -62,19 +62,21 @@ def test_the_models_ray_map_puts_the_rings_where_the_exact_images_are():
         axis = jnp.asarray([0.0, 1e-9, 1.0])
         return tuple(jl.point_source_images_at(axis, D, r, order=m).alpha for m in (0, 1))
 
-    radii = jnp.asarray([20.0, 40.0, 1e4, R - 1e-3, R + 1e-3, jnp.inf])
+    # Spheres inside the camera's radius (R = 10, 5: the crossing after the periapsis),
+    # through it, beyond it.
+    radii = jnp.asarray([10.0, 5.0, 20.0, 40.0, 1e4, R - 1e-3, R + 1e-3, jnp.inf])
     a0, a1, slope = (np.asarray(v) for v in jax.vmap(rings)(radii))
     # (The two images of each order of a source on the axis: the ring, twice.)
-    e0, e1 = (np.asarray(v) for v in jax.vmap(exact)(radii[:3]))
-    np.testing.assert_allclose(a0[:3, None] + 0 * e0, e0, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(a1[:3, None] + 0 * e1, e1, rtol=0, atol=1e-9)
+    e0, e1 = (np.asarray(v) for v in jax.vmap(exact)(radii[:5]))
+    np.testing.assert_allclose(a0[:5, None] + 0 * e0, e0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a1[:5, None] + 0 * e1, e1, rtol=0, atol=1e-9)
     # At infinity: the primary ring of the escape angle's own map.
-    assert a0[5] == pytest.approx(float(jl.einstein_ring_angle(D)), abs=1e-12)
+    assert a0[7] == pytest.approx(float(jl.einstein_ring_angle(D)), abs=1e-12)
     # The primary ring at R = 40 is 16 % inside the one at infinity (0.296 against 0.353
     # rad): what a fit that ignores the distance puts down to D.
-    assert a0[1] == pytest.approx(0.29605, abs=1e-5)
+    assert a0[3] == pytest.approx(0.29605, abs=1e-5)
     # d alpha_E / dR against a central difference (step 1e-3: error ~1e-9 relative).
-    assert slope[1] == pytest.approx((a0[4] - a0[3]) / 2e-3, rel=1e-6)
+    assert slope[3] == pytest.approx((a0[6] - a0[5]) / 2e-3, rel=1e-6)
 
 
 def test_a_ring_at_a_finite_distance_is_recovered_and_measures_the_mass(ring, fitted):
@@ -126,10 +128,28 @@ def test_a_ring_at_a_finite_distance_fitted_as_if_at_infinity_is_far_off(ring, f
     assert f.distance < 0.75 * D
 
 
-def test_a_sphere_inside_every_camera_distance_is_refused_by_name(ring):
-    # R = 1.5 R_S: no camera distance the start searches (D >= 1.9) has the sphere
-    # behind it, so no ring relation; the refusal names the sphere and the range.
-    said = r"ring of a source on the sphere R = 0 D \+ 1.5 R_S \(the model holds R >= D, and "
+def test_a_ring_of_a_source_inside_the_cameras_radius_is_recovered():
+    # D_LS = D_OL / 2 (R = 10 at D = 20): the star on the sphere, rendered with both of
+    # each ray's crossings, and a uniform background far beyond it (at infinity); the
+    # model reads the crossing after the periapsis. Measured: D = 20.50 +- 0.94 (0.53 of
+    # its standard errors), chi2/dof 1.05.
+    cam = jl.Camera(D, math.radians(FOV_DEG), W, H, supersample=8)
+    render = jax.jit(jl.render_array)
+    star = jl.GaussianStar(math.radians(SIGMA_DEG), 0.8)
+    img = np.asarray(render(jl.Scene(cam, star, source_distance=10.0)))[..., 0]
+    img = img + np.asarray(render(jl.Scene(cam, jl.Uniform(FLOOR))))[..., 0]
+    img = img + NOISE * np.random.default_rng(20).standard_normal(img.shape)
+    f = jl.fit_ring(img, supersample=3, source_distance=jl.SourceDistance(radius=10.0))
+    assert f.valid, f.summary()
+    assert abs(f.distance - D) < 3 * f.distance_err
+    assert f.distance_err < 0.1 * D
+
+
+def test_a_sphere_on_the_photon_sphere_is_refused_by_name(ring):
+    # R = 1.5 R_S: light from behind the hole on it reaches the camera only inside the
+    # shadow, so no ring relation at any distance; the refusal names the sphere and the
+    # range the start searches.
+    said = r"ring of a source on the sphere R = 0 D \+ 1.5 R_S \(the model holds R > 1.5, and "
     with pytest.raises(ValueError, match=said + "searches D from 1.9"):
         jl.fit_ring(ring, supersample=3, source_distance=jl.SourceDistance(radius=1.5))
 

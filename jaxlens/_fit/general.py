@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from .._compile import ahead
+from .._exact import R_PHOTON
 from .._psf import AbstractPSF, GaussianPSF
 from .._scene import Scene
 from .._util import host_driver, to_device
@@ -114,8 +115,10 @@ def fit(
       `Fit.observer_distance` is measured). `None` (default): the scene's own
       `source_distance` where it has one (a fixed radius), else at infinity. The model
       and the start's ring relation then read the ray map of the crossings of that
-      sphere (`source_table`); a fit that ends with the sphere inside the camera's
-      radius ($R < D$, which that map does not describe) is flagged in `message`.
+      sphere after each ray's periapsis (`source_table`: a source behind the hole,
+      beyond the camera's radius or inside it); a fit that ends with the sphere inside
+      the photon sphere ($R \\le 1.5$, which that map does not describe) is flagged in
+      `message`.
 
     **Returns:** a `Fit`; its `message` names every check that failed, among them
     residuals beyond the noise model (with the likely cause: a missing PSF, clipped
@@ -233,11 +236,10 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
     sol = Solution(theta, phys, r, jac, result, steps, model)
     f = diagnose(fitted, obs, seen, s, noise, sol, values, free, noise_seen, t_start)
     f = dataclasses.replace(f, source_distance=opts.source)
-    if opts.source is not None and not f.source_radius >= f.distance:
-        note = (f"the source sphere (R = {f.source_radius:.6g} R_S) lies inside the camera's "
-                f"radius (D = {f.distance:.6g} R_S), which the model does not describe: it "
-                "holds a sphere at least as far from the hole as the camera (R >= D, "
-                "D_LS >= D_OL)")  # fmt: skip
+    if opts.source is not None and not f.source_radius > R_PHOTON:
+        note = (f"the source sphere (R = {f.source_radius:.6g} R_S) lies inside the photon "
+                "sphere (R <= 1.5 R_S), which the model does not describe: a source behind "
+                "the hole there is seen only inside the shadow")  # fmt: skip
         f = dataclasses.replace(f, message="; ".join(m for m in (f.message, note) if m))
     return f
 

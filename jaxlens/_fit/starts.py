@@ -12,6 +12,7 @@ import numpy as np
 
 from .._area import rect_in_disc
 from .._compile import program
+from .._exact import R_PHOTON
 from .._util import to_device
 from . import ring_table_data
 from .noise import clipped_mean, clipped_slope, clipping_bounds, noise_clipped, noise_level
@@ -32,7 +33,7 @@ def compute_ring_table(source: tuple | None = None):
         s, r0 = (0.0, math.inf) if source is None else source
         out = _ring_relation(jnp.asarray(d), jnp.asarray(s), jnp.asarray(r0), source is not None)
         a, sh, slope = (np.asarray(v) for v in out)
-    ok = np.isfinite(a) & (a < math.radians(88.0)) & (s * d + r0 >= d)
+    ok = np.isfinite(a) & (a < math.radians(88.0)) & (s * d + r0 > R_PHOTON)
     return d[ok], a[ok], sh[ok], slope[ok]
 
 
@@ -44,7 +45,8 @@ def _ring_relation(d, s, r0, finite: bool):
 
     def one(d):
         if finite:
-            table = source_table(d, jnp.maximum(s * d + r0, d), knots=2048)
+            rr = s * d + r0  # (inside the photon sphere: filtered out after)
+            table = source_table(d, jnp.where(rr > R_PHOTON, rr, 2.0 * R_PHOTON), knots=2048)
         else:
             table = escape_table(d, knots=2048)
         a, slope = solve_with_slope(table, jnp.pi)
@@ -472,7 +474,7 @@ def ring_start(img, prof: _Profile, star_sigma, init, scale, source=None):
         if source is not None:
             d = ring_table()[0]
             sphere = (f" of a source on the sphere R = {source[0]:.6g} D + {source[1]:.6g} "
-                      f"R_S (the model holds R >= D, and searches D from {d[0]:g} to "
+                      f"R_S (the model holds R > 1.5, and searches D from {d[0]:g} to "
                       f"{d[-1]:g})")  # fmt: skip
         raise ValueError(
             f"no camera distance puts an Einstein ring{sphere} at {prof.ring_radius:.3g} "

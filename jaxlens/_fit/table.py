@@ -148,28 +148,44 @@ def solve_with_slope(table: RayMap, target: ArrayLike):
 
 
 def source_table(distance: ArrayLike, radius: ArrayLike, *, knots: int = 4096) -> RayMap:
-    """The ray map the fit reads for a source on the sphere $r = R$ behind the camera
-    ($R \\ge D$): `escape_table`'s knots in $\\alpha$ (out to $\\pi/2$), their values the
-    azimuth $\\varphi_R(\\alpha)$ at which each ray crosses the sphere (`finite_crossings`,
-    at the table's 6 duplication steps) in place of the escape angle, the slopes by
-    the same fourth-order differences.
+    """The ray map the fit reads for a source on the sphere $r = R$ about the hole:
+    `escape_table`'s knots in $\\alpha$ (out to $\\pi/2$), their values the azimuth
+    $\\varphi_R(\\alpha)$ at which each ray leaves through the sphere after its
+    periapsis (`finite_crossings`, at the table's 6 duplication steps) in place of the
+    escape angle, the slopes by the same fourth-order differences.
 
     A ray from a camera at $D \\le R$ crosses the sphere once, after its periapsis (a
-    captured ray never), at the azimuth of the point whose direction from the hole the
-    sky's radiance is read in: so the renderer's area-exact cells, given this map,
-    draw a sky on the sphere, its thin rings included (where $\\varphi_R = 3\\pi, 5\\pi$),
-    with the shadow edge of the distance. Differentiable in forward mode (the fit's
-    Jacobian) and in reverse mode with respect to `distance` (the knots through
-    `escape_table`'s difference rule, the values by autodiff of the closed form) and
-    `radius` (units of R_S, scalars). A sphere inside the
-    camera's radius ($R < D$: two crossings) is not what this map holds; the fit flags
-    it.
+    captured ray never). For $1.5 < R < D$ a ray that turns outside the photon sphere
+    crosses it twice: on its way in, on the camera's side of the hole, and after its
+    periapsis; the map holds the second, where a source behind the hole is seen (for
+    the rays that turn beyond $R$ and never meet it, the grazing ray's azimuth falling
+    on with a slope of one: the map stays monotone, and nothing behind the hole is read
+    there). A source in front
+    of the hole, seen through the first crossings, is not what it holds. So the
+    renderer's area-exact cells, given this map, draw a sky behind the hole on the
+    sphere, its thin rings included (where $\\varphi_R = 3\\pi, 5\\pi$), with the
+    shadow edge of the distance. Differentiable in forward and reverse mode with
+    respect to `distance` (the knots through `escape_table`'s difference rule, the
+    values by autodiff of the closed form) and `radius` (units of R_S, scalars). A
+    sphere inside the photon sphere ($R \\le 1.5$), whose light behind the hole reaches
+    the camera only inside the shadow, is not either; the fit flags it.
     """
     d = jnp.asarray(distance, jnp.result_type(float, distance))
     r = jnp.asarray(radius, d.dtype)
     base = escape_table(d, knots=knots)
     alpha = base.alpha_sh + jnp.exp(base.tau)
-    phi = finite_crossings(alpha, d, r, iterations=6).first
+    c = finite_crossings(alpha, d, r, iterations=6)
+    # The rays that turn beyond a sphere inside the camera's radius never meet it:
+    # past the ray that grazes it (alpha_R, its periapsis R), the azimuth of the
+    # grazing point less alpha - alpha_R, monotone with a slope (the area-exact cells
+    # divide by it) and far from anything behind the hole.
+    inner = r < d
+    rr = jnp.where(inner, r, 0.5 * d)
+    sin_r = (rr / d) * jnp.sqrt(rr / (rr - 1.0)) * jnp.sqrt((d - 1.0) / d)
+    alpha_r = jnp.arcsin(jnp.clip(sin_r, 0.0, 1.0))
+    graze = finite_crossings(alpha_r, d, rr, iterations=6).first
+    beyond = graze - (alpha - alpha_r)
+    phi = jnp.where(inner, jnp.where(c.count == 2, c.second, beyond), c.first)
     # At R = inf the crossing is the escape angle: the map's own values, bit for bit.
     phi = jnp.where(jnp.isinf(r), base.phi, phi)
     return eqx.tree_at(lambda m: (m.phi, m.slope), base,
