@@ -95,6 +95,9 @@ def add_scene_options(p, *, size_default: str, supersample_default: int):
     p.add_argument("--source-distance", type=float, metavar="R",
                    help="the sky on a transparent sphere of radius R about the hole, units of "
                    "R_S, in (1, 1e30] (default: the sky at infinity)")  # fmt: skip
+    p.add_argument("--source-plane", type=float, metavar="L",
+                   help="the sky on the plane L behind the hole, perpendicular to the line of "
+                   "sight, units of R_S, in (0, 1e30] (default: the sky at infinity)")  # fmt: skip
     p.add_argument(
         "--float64", action="store_true", help="compute pixels in float64 (default float32)"
     )
@@ -128,6 +131,7 @@ def scene_dict(args) -> dict:
         ("--accuracy", args.accuracy, TOP_KEYS["accuracy"]),
         ("--supersample", args.supersample, CAMERA_KEYS["supersample"]),
         ("--source-distance", args.source_distance, EFFECTS_KEYS["source_distance"]),
+        ("--source-plane", args.source_plane, EFFECTS_KEYS["source_plane"]),
     ]
     for flag, value, key in options:
         if value is not None:
@@ -155,8 +159,10 @@ def scene_dict(args) -> dict:
         data["output"] = {**data.get("output", {}), "exposure": args.exposure}
     if args.accuracy is not None:
         data["accuracy"] = args.accuracy
-    if args.source_distance is not None and isinstance(data.get("effects", {}), dict):
-        data["effects"] = {**data.get("effects", {}), "source_distance": args.source_distance}
+    for name in ("source_distance", "source_plane"):
+        value = getattr(args, name)
+        if value is not None and isinstance(data.get("effects", {}), dict):
+            data["effects"] = {**data.get("effects", {}), name: value}
     layers = data.get("sky", [dict(layer) for layer in DEFAULT_SKY])
     if args.sky is not None:
         layers = _sky_layers(args.sky)

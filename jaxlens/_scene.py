@@ -36,6 +36,7 @@ sigma_deg = 1.0
 [effects]
 method = "auto"            # auto | table | weak_field | trace
 source_distance = 1e4      # the sky on a sphere of this radius (R_S); absent: at infinity
+# source_plane = 200       # or on the plane this far behind the hole (R_S; not with the above)
 [effects.motion]
 type = "orbit"             # orbit (circular geodesic at the camera's D) | infall
 angle_deg = 0.0            # orbit: direction of motion in the image, degrees
@@ -119,6 +120,9 @@ EFFECTS_KEYS = {
     "method": Key("str", "auto", lambda v: v in METHODS, " | ".join(METHODS)),
     "source_distance": Key("float", None, greater(1.0), "a number > 1 (units of R_S: the "
                            "radius of the sphere the sky lies on; absent: at infinity)"),
+    "source_plane": Key("float", None, greater(0.0), "a number > 0 (units of R_S: the "
+                        "distance behind the hole of the plane the sky lies on, perpendicular "
+                        "to the line of sight; absent: at infinity)"),
 }  # fmt: skip
 EFFECT_SECTIONS = {"motion": None, "redshift": "redshift", "disk": "thin"}  # default types
 
@@ -453,7 +457,8 @@ class Scene(eqx.Module):
         parts = {name: _schema.build(name, eff[name]) for name in EFFECT_SECTIONS if name in eff}
         return cls(
             _camera_of(v["camera"], dtype=dtype), _sky_of(v["sky"]), **parts,
-            source_distance=eff.get("source_distance"), accuracy=v["accuracy"],
+            source_distance=eff.get("source_distance"), source_plane=eff.get("source_plane"),
+            accuracy=v["accuracy"],
             method=eff["method"], exposure=v["output"]["exposure"],
         )  # fmt: skip
 

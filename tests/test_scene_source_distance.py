@@ -223,6 +223,20 @@ def test_scene_file_key_and_command_line_flag(tmp_path, capsys, monkeypatch):
         code, _, err = run(["render", "--source-distance", value, "-o", out], capsys)
         assert code == 2 and f"--source-distance {value} is not valid: expected a number > 1" in err
 
+    # The plane behind the hole: its key, listed, its flag, and both refused by value.
+    assert float(jl.Scene.from_dict({"effects": {"source_plane": 200.0}}).source_plane) == 200.0
+    with pytest.raises(ValueError, match=re.escape("[effects] source_plane = -1")):
+        jl.Scene.from_dict({"effects": {"source_plane": -1}})
+    assert "source_plane    # a number > 0 (units of R_S" in keys
+    assert run(["render", "--size", "12x8", "--source-plane", "200", "-o", out], capsys)[0] == 0
+    assert float(render.scene.source_plane) == 200.0 and render.scene.source_distance is None
+    code, _, err = run(["render", "--source-plane", "-3.5", "-o", out], capsys)
+    assert code == 2 and "--source-plane -3.5 is not valid: expected a number > 0" in err
+    # Not both: the scene refuses the pair by name.
+    code, _, err = run(["render", "--source-plane", "200", "--source-distance", "40", "-o", out],
+                       capsys)  # fmt: skip
+    assert code == 2 and "source_plane" in err
+
 
 def test_plane_crossings_meet_the_far_field_line():
     # Far behind the hole a ray is a straight line at impact parameter b from it, along
