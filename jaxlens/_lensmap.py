@@ -25,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import _exact
 from ._camera import Camera, sky_direction
-from ._fit.units import C_LIGHT, RS_SUN_M
+from ._constants import C_LIGHT, RS_SUN_M
 from ._messages import shown
 from ._ray_inputs import (
     DISTANCE_MESSAGE,

@@ -9,9 +9,7 @@ import sys
 
 from jaxtyping import ArrayLike
 
-GM_SUN = 1.3271244e20  # IAU 2015 nominal solar mass parameter, m^3 / s^2
-C_LIGHT = 299792458.0  # m / s
-RS_SUN_M = 2.0 * GM_SUN / C_LIGHT**2  # Schwarzschild radius of one solar mass: 2953.25 m
+from .._constants import C_LIGHT as C_LIGHT, GM_SUN as GM_SUN, RS_SUN_M as RS_SUN_M
 
 
 def schwarzschild_radius_m(mass_msun: ArrayLike):
