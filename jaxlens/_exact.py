@@ -354,6 +354,17 @@ def strong_field_deflection(b):
     return -jnp.log(b / B_CRIT - 1.0) + math.log(216.0 * (7.0 - 4.0 * math.sqrt(3.0))) - jnp.pi
 
 
+def grazing_angle(distance, radius):
+    """Local angle (radians, below $\\pi/2$) of the ray from a static camera at
+    `distance` $D$ whose periapsis is `radius` $R$ ($1.5 < R \\le D$, units of R_S):
+    $\\sin\\alpha_R = (R/D)\\sqrt{R/(R-1)}\\sqrt{(D-1)/D}$, from $b = D\\sin\\alpha /
+    \\sqrt{1 - 1/D}$ and $b^2 = R^3/(R-1)$. Rays nearer the hole's direction, outside
+    the shadow, turn inside the sphere and cross it twice; those beyond miss it."""
+    d, r = distance, radius
+    s = (r / d) * jnp.sqrt(r / (r - 1.0)) * jnp.sqrt((d - 1.0) / d)
+    return jnp.arcsin(jnp.clip(s, 0.0, 1.0))
+
+
 def periapsis(b):
     """Periapsis radius $r_0$ of a ray with impact parameter $b > b_c$: $b^2 = r_0^3/(r_0-1)$."""
     s = B_CRIT / b
@@ -398,6 +409,22 @@ def _segment_integral(x, y, dxy, iterations):
     v13 = x1 * x3 * y2 + y1 * y3 * x2
     v14 = x1 * y2 * y3 + y1 * x2 * x3
     return 2.0 * dxy * carlson_rf(v12 * v12, v13 * v13, v14 * v14, iterations=iterations)
+
+
+def _camera_gap(sg, u0, e0, u1, e3, tiny):
+    """$\\sqrt{u_2 - u_0}$ of a camera outside the photon sphere, through `sg` $=
+    \\sqrt{P(u_0)}$ (exact from its angle): `sg` $/ \\sqrt{(u_0 - u_1)(u_3 - u_0)}$
+    (`e0`, `e3`: offsets from 2/3; floored at `tiny`)."""
+    return sg / jnp.maximum(jnp.sqrt(u0 - u1) * jnp.sqrt(jnp.maximum(jnp.abs(e0 - e3), tiny)), tiny)
+
+
+def _sphere_gap(u, e, u2, e2, tiny):
+    """$\\sqrt{|u - u_2|}$ at a point $u$ (`e` $= u - 2/3$): from the offsets to 2/3
+    where $u_2$ is near it (a ray near the photon sphere), else directly: in the far
+    field both are small, and their offsets from 2/3 would keep only float32's 6e-8 of
+    them absolutely. Floored at `tiny`, so that a point on the root keeps a finite
+    derivative."""
+    return jnp.sqrt(jnp.maximum(jnp.where(e2 > -1.0 / 3.0, jnp.abs(e - e2), jnp.abs(u2 - u)), tiny))
 
 
 def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
@@ -474,13 +501,10 @@ def finite_crossings(alpha, distance, rr, *, iterations: int = 12, max_windings:
 
     c1, c2, c3 = factors(u0, e0)
     # The camera's factor at its turning root, through sqrt(P(u0)) (exact from alpha).
-    c2 = jnp.where(outside, sg / jnp.maximum(c1 * c3, tiny), c2)
+    c2 = jnp.where(outside, _camera_gap(sg, u0, e0, u1, e3, tiny), c2)
     c3 = jnp.where(outside, c3, sg / jnp.maximum(c1 * c2, tiny))
-    s1, s2, s3 = factors(ur, er)
-    # |u_R - u2| from the offsets to 2/3 where u2 is near it (a ray near the photon
-    # sphere), else directly: in the far field both are small, and their offsets from
-    # 2/3 would keep only float32's 6e-8 of them absolutely.
-    s2 = jnp.where(e2 > -1.0 / 3.0, s2, jnp.sqrt(jnp.maximum(jnp.abs(u2 - ur), tiny)))
+    s1, _, s3 = factors(ur, er)
+    s2 = _sphere_gap(ur, er, u2, e2, tiny)
     d_tp = jnp.where(outside, d21, d31)
     t_cam = _turning_integral(jnp.where(outside, c2, c3), c1, jnp.where(outside, c3, c2), d32,
                               d_tp, iterations)  # fmt: skip
@@ -547,14 +571,15 @@ def _far_part(r):
     return r + jnp.log(r - 1.0)
 
 
-def _remainder_to_turning(w, sw, d21, d32, b, dtype):
-    """$\\int_u^{u_2} du' / (1 + b\\sqrt{P(u')})$ from a point `w` $= u_2 - u \\ge 0$
-    below the turning root $u_2$ (`sw` $= \\sqrt w$, computed without cancellation),
+def _remainder_to_turning(sw, d21, d32, b, dtype):
+    """$\\int_u^{u_2} du' / (1 + b\\sqrt{P(u')})$ from a point $u$ below the turning
+    root $u_2$ (`sw` $= \\sqrt{u_2 - u}$, computed without cancellation; $w$ = `sw`$^2$),
     with $u' = u_2 - w s^2$: $\\int_0^1 2 w s\\, ds / (1 + b s \\sqrt{w (d_{21} - w
     s^2)(d_{32} + w s^2)})$, smooth in $s$, by Gauss-Legendre."""
     s = jnp.asarray(_GL_X, dtype)
     ws = jnp.asarray(_GL_W, dtype)
-    w_, sw_, d21_, d32_, b_ = (v[..., None] for v in (w, sw, d21, d32, b))
+    sw_, d21_, d32_, b_ = (v[..., None] for v in (sw, d21, d32, b))
+    w_ = sw_ * sw_
     w2 = w_ * s * s
     f = 2.0 * w_ * s / (1.0 + b_ * s * sw_ * jnp.sqrt((d21_ - w2) * (d32_ + w2)))
     return jnp.sum(ws * f, axis=-1)
@@ -613,14 +638,10 @@ def crossing_times(alpha, distance, radius, *, iterations: int = 12, _kappa=None
     kt = jnp.where(turning, kappa, 0.5)
     st = jnp.where(turning, B_CRIT / b_, 0.5)
     u1, u2, e2, e3, _, d32, d21, _ = real_roots(st, kt)
-    # sqrt(u2 - u) of the camera, exact through sqrt(P(u0)) as in `finite_crossings`.
-    sg = jnp.abs(root * ca / sa_)
     tiny = jnp.finfo(dtype).tiny
-    sw0 = sg / jnp.maximum(jnp.sqrt((u0 - u1) * jnp.abs(e0 - e3)), tiny)
-    gap_r = jnp.where(e2 > -1.0 / 3.0, jnp.abs(er - e2), jnp.abs(u2 - ur))  # u2 - u_R
-    swr = jnp.sqrt(jnp.maximum(gap_r, tiny))
-    j0 = _remainder_to_turning(sw0 * sw0, sw0, d21, d32, b_, dtype)
-    jr = _remainder_to_turning(swr * swr, swr, d21, d32, b_, dtype)
+    sw0 = _camera_gap(jnp.abs(root * ca / sa_), u0, e0, u1, e3, tiny)
+    j0 = _remainder_to_turning(sw0, d21, d32, b_, dtype)
+    jr = _remainder_to_turning(_sphere_gap(ur, er, u2, e2, tiny), d21, d32, b_, dtype)
     # A(u) = -(r + ln(r - 1)) at the camera, the sphere and the periapsis.
     a0 = -_far_part(distance)
     ar = jnp.where(far, 0.0, -_far_part(rr))

@@ -306,9 +306,7 @@ def _images_at(theta, d, r, order, far):
     # Where the ray's periapsis is r (a sphere inside the camera's radius and outside
     # the photon sphere): the two branches meet there.
     meet = jnp.isfinite(r) & (r < d) & (r > 1.5)
-    rr = jnp.where(meet, r, 2.0)
-    sin_r = jnp.clip((rr / d) * jnp.sqrt(rr / (rr - 1.0)) * jnp.sqrt((d - 1.0) / d), 0.0, 1.0)
-    alpha_r = jnp.where(meet, jnp.arcsin(sin_r), alpha_sh)
+    alpha_r = jnp.where(meet, _exact.grazing_angle(d, jnp.where(meet, r, 2.0)), alpha_sh)
     # After the turning point (or the only crossing, r >= d): from the edge up to the
     # meeting angle (r < d) or straight away (pi); the first crossing (r < d): down
     # from the meeting angle (or the edge, r <= 1.5) to the hole's own direction. Both

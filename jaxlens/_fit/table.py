@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._exact import finite_crossings
+from .._exact import finite_crossings, grazing_angle
 from .._messages import shown
 from .._ray_inputs import check_distance, check_dtype, check_real
 from .._raymap import RayMap, _difference_slopes, tabulate
@@ -181,8 +181,7 @@ def source_table(distance: ArrayLike, radius: ArrayLike, *, knots: int = 4096) -
     # divide by it) and far from anything behind the hole.
     inner = r < d
     rr = jnp.where(inner, r, 0.5 * d)
-    sin_r = (rr / d) * jnp.sqrt(rr / (rr - 1.0)) * jnp.sqrt((d - 1.0) / d)
-    alpha_r = jnp.arcsin(jnp.clip(sin_r, 0.0, 1.0))
+    alpha_r = grazing_angle(d, rr)
     graze = finite_crossings(alpha_r, d, rr, iterations=6).first
     beyond = graze - (alpha - alpha_r)
     phi = jnp.where(inner, jnp.where(c.count == 2, c.second, beyond), c.first)
