@@ -114,31 +114,31 @@ def _plain(x, name: str, unit: str) -> float:
     return v
 
 
-def to_metres(x, *, name: str = "distance") -> float:
-    """A length as a float in metres: an astropy length `Quantity` converted, a plain
-    number taken as metres. Positive and finite, else a `ValueError` naming `name`."""
+def _in_unit(x, name: str, unit, plain: str, kind: str) -> float:
+    """`x` as a positive, finite float in `plain` units: an astropy `Quantity`
+    converted to `unit(astropy.units)`, a plain number taken as it is; a `ValueError`
+    naming `name` and the `kind` of quantity expected otherwise."""
     if is_quantity(x):
         u = _astropy_units()
         try:
-            x = x.to_value(u.m)
+            x = x.to_value(unit(u))
         except u.UnitConversionError:
-            raise ValueError(f"{name}={x!r} is not a length (give metres, or a Quantity "
-                             "in a unit of length)") from None  # fmt: skip
-    return _plain(x, name, "metres")
+            raise ValueError(f"{name}={x!r} is not a {kind} (give {plain}, or a Quantity "
+                             f"in a unit of {kind})") from None  # fmt: skip
+    return _plain(x, name, plain)
+
+
+def to_metres(x, *, name: str = "distance") -> float:
+    """A length as a float in metres: an astropy length `Quantity` converted, a plain
+    number taken as metres. Positive and finite, else a `ValueError` naming `name`."""
+    return _in_unit(x, name, lambda u: u.m, "metres", "length")
 
 
 def to_solar_masses(x, *, name: str = "mass") -> float:
     """A mass as a float in solar masses: an astropy mass `Quantity` converted (at the
     nominal solar mass, `u.M_sun`), a plain number taken as solar masses. Positive and
     finite, else a `ValueError` naming `name`."""
-    if is_quantity(x):
-        u = _astropy_units()
-        try:
-            x = x.to_value(u.M_sun)
-        except u.UnitConversionError:
-            raise ValueError(f"{name}={x!r} is not a mass (give solar masses, or a "
-                             "Quantity in a unit of mass)") from None  # fmt: skip
-    return _plain(x, name, "solar masses")
+    return _in_unit(x, name, lambda u: u.M_sun, "solar masses", "mass")
 
 
 def as_metres(value: float, quantity: bool):
