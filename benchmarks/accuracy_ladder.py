@@ -794,6 +794,21 @@ def run_finite(sets, dtypes, quick):
     matches the reference's)."""
     rows = []
     steps = (4, 6, 8) if quick else range(3, 9)
+    spheres = (("R=2D", 2.0), ("R=D/2", 0.5))
+
+    def pick(c):  # the crossing after the turning point where there are two
+        return np.where(np.asarray(c[2]) == 2, np.asarray(c[1]), np.asarray(c[0]))
+
+    def hit(count):
+        return np.where(np.asarray(count) > 0, ESCAPED, CAPTURED)
+
+    # The reference once a set, sphere and dtype (its rays rounded to the dtype).
+    refs = {
+        (name, label, dtype): _crossing12(*(np.asarray(v.astype(dtype), np.float64)
+                                            for v in (s["alpha"], s["distance"],
+                                                      s["distance"] * factor)))
+        for name, s in sets.items() for label, factor in spheres for dtype in dtypes
+    }  # fmt: skip
     for n_it in steps:
         for dtype in dtypes:
 
@@ -804,7 +819,7 @@ def run_finite(sets, dtypes, quick):
                 return c.first, c.second, c.count
 
             for name, s in sets.items():
-                for label, factor in (("R=2D", 2.0), ("R=D/2", 0.5)):
+                for label, factor in spheres:
                     a = s["alpha"].astype(dtype)
                     d = s["distance"].astype(dtype)
                     r = (s["distance"] * factor).astype(dtype)
@@ -812,12 +827,9 @@ def run_finite(sets, dtypes, quick):
                     compiled = f.lower(a, d, r).compile()
                     compile_s = time.perf_counter() - t
                     _, run_s, (first, second, count) = time_call(compiled, a, d, r)
-                    ref = _crossing12(*(np.asarray(v, np.float64) for v in (a, d, r)))
-                    pick = lambda c: np.where(c[2] == 2, c[1], c[0])  # noqa: E731
-                    phi = pick((np.asarray(first), np.asarray(second), np.asarray(count)))
-                    ref_phi = pick(tuple(np.asarray(v) for v in ref))
-                    hit = lambda c: np.where(np.asarray(c) > 0, ESCAPED, CAPTURED)  # noqa: E731
-                    stats = error_stats(phi, hit(count), ref_phi, hit(ref[2]), s["delta"])
+                    ref = refs[name, label, dtype]
+                    stats = error_stats(pick((first, second, count)), hit(count), pick(ref),
+                                        hit(ref[2]), s["delta"])  # fmt: skip
                     stats["agree"] = float(np.mean(np.asarray(count) == np.asarray(ref[2])))
                     rows.append(row("exact-finite", f"iterations={n_it}", n_it, dtype,
                                     f"{name} {label}", a.size, stats, a.size / run_s,
