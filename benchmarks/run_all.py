@@ -28,6 +28,7 @@ def main(argv=None):
             "scaling",
             "scaling_processes",
             "speedup",
+            "floor",
             "source_distance",
             "bench_render",
             "bench_effects",
@@ -40,6 +41,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     plan = {
         "speedup": ["--rays", "200000"] if args.quick else [],
+        "floor": ["--rays", "200000", "--repeats", "5"] if args.quick else [],
         "source_distance": ["--rays", "200000"] if args.quick else [],
         "accuracy_ladder": ["--quick"] if args.quick else [],
         "scaling": ["--quick"] if args.quick else [],
