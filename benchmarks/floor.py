@@ -260,12 +260,20 @@ def rows_for(dtype_name: str, alpha64: np.ndarray, lib) -> tuple[list[dict], dic
     return rows, {"alpha": alpha_np, "table": tab, "delta": delta}
 
 
-def _timed(call) -> tuple[float, float, object]:
-    """CPU seconds (all threads of the process), wall seconds and the output of `call()`,
-    every output leaf blocked on."""
-    c, w = time.process_time(), time.perf_counter()
+# Pause before each timed call: XLA's CPU thread pool spins for a while after its last
+# task, and that spin would be charged to the next row's CPU time (a C floor timed right
+# after a JAX row showed 1.4x its wall time on one thread).
+SETTLE_S = 0.03
+
+
+def _timed(call) -> tuple[float, float, float, object]:
+    """CPU seconds (all threads of the process), wall seconds, CPU seconds of the calling
+    thread alone, and the output of `call()`, every output leaf blocked on."""
+    time.sleep(SETTLE_S)
+    c, w, t = time.process_time(), time.perf_counter(), time.thread_time()
     out = jax.block_until_ready(call())
-    return time.process_time() - c, time.perf_counter() - w, out
+    c, w, t = time.process_time() - c, time.perf_counter() - w, time.thread_time() - t
+    return c, w, t, out
 
 
 def _phi(out):
@@ -383,8 +391,8 @@ def _table_md(res: dict) -> str:
     wc = [f"{r['name'].split('.')[0]}: {r['accuracy']['max_err_wc']:.1e}" for r in res["rows"]]
     worst = max(res["rows"], key=lambda r: r["accuracy"]["max_err"])["accuracy"]
     out += (f"- Max err over well-conditioned rays, |alpha/alpha_sh - 1| >= 1e-5 (rad), "
-            f"by row: {', '.join(wc)}; the worst ray above lies at alpha/alpha_sh - 1 = "
-            f"{worst['worst_delta']:.1e}\n")  # fmt: skip
+            f"by row: {', '.join(wc)}; the max err column's worst ray lies at "
+            f"alpha/alpha_sh - 1 = {worst['worst_delta']:.1e}\n")  # fmt: skip
     if res["c_check"]:
         parts = [f"{k}: {v['escaping']:.1e} escaping, {v['captured']:.1e} captured"
                  for k, v in res["c_check"].items()]  # fmt: skip
@@ -416,16 +424,15 @@ def main(argv=None):
             for r in rs:
                 r["dtype"] = dt
                 t = time.perf_counter()
-                outs[dt, r["name"]] = _timed(r["call"])[2]  # warm-up (compiles)
+                outs[dt, r["name"]] = _timed(r["call"])[3]  # warm-up (compiles)
                 first[dt, r["name"]] = time.perf_counter() - t
                 print(f"warm-up {dt} {r['name']}: {first[dt, r['name']]:.2f} s", flush=True)
             rows += rs
-        times = {(r["dtype"], r["name"]): ([], []) for r in rows}
+        times = {(r["dtype"], r["name"]): ([], [], []) for r in rows}
         for _ in range(args.repeats):  # round robin: drift hits every row alike
             for r in rows:
-                c, w, _ = _timed(r["call"])
-                times[r["dtype"], r["name"]][0].append(c * 1e9 / args.rays)
-                times[r["dtype"], r["name"]][1].append(w * 1e9 / args.rays)
+                for series, x in zip(times[r["dtype"], r["name"]], _timed(r["call"])[:3]):
+                    series.append(x * 1e9 / args.rays)
     load_after = os.getloadavg() if hasattr(os, "getloadavg") else (load_average(),) * 3
 
     results = {}
@@ -434,11 +441,12 @@ def main(argv=None):
         ref_phi, ref_status = reference(ctx["alpha"], np.full(args.rays, D))
         res = {"rows": [], "median": {"cpu": {}, "wall": {}}}
         for r in (r for r in rows if r["dtype"] == dt):
-            cpu, wall = times[dt, r["name"]]
+            cpu, wall, thread = times[dt, r["name"]]
             res["median"]["cpu"][r["name"]] = float(np.median(cpu))
             res["median"]["wall"][r["name"]] = float(np.median(wall))
             res["rows"].append({
                 "name": r["name"], "what": r["what"], "cpu_ns": cpu, "wall_ns": wall,
+                "calling_thread_cpu_ns": thread,
                 "warm_up_s": first[dt, r["name"]],
                 "accuracy": _accuracy(r, outs[dt, r["name"]], ctx, ref_phi, ref_status),
             })  # fmt: skip
