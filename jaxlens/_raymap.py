@@ -22,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from . import _exact
+from . import _exact, _fastmath
 from ._compile import program
 from ._messages import shown
 from ._ray_inputs import check_distance, check_dtype, check_real
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
-from ._util import concrete, fusion_barrier, is_concrete, tracing
+from ._util import concrete, fusion_barrier, is_concrete
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -149,7 +149,10 @@ class RayMap(eqx.Module):
         """Interpolated escape angle (radians) at `alpha`; meaningful where
         `alpha > alpha_sh` (escaping rays), finite everywhere."""
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        return _interpolate(alpha - self.alpha_sh, self.tau, self.dtau, self.phi, self.slope)
+        return _look_up(alpha - self.alpha_sh, (self._outer(),))[0]
+
+    def _outer(self) -> tuple:
+        return (self.tau, self.dtau, self.phi, self.slope)
 
     def astype(self, dtype) -> "RayMap":
         """The same table in `dtype` (e.g. float32 for a float32 render of a table built
@@ -212,7 +215,7 @@ class RayMap(eqx.Module):
         if self.inner is None:
             raise ValueError("this RayMap was built without captured=True")
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        return _interpolate(self.alpha_sh - alpha, *self.inner)
+        return _look_up(self.alpha_sh - alpha, (self.inner,))[0]
 
     def __call__(self, alpha: ArrayLike):
         """Trace rays at local angles `alpha` (radians) through the table.
@@ -220,22 +223,35 @@ class RayMap(eqx.Module):
         **Returns:** a `TraceResult`; `r_min` is the closed-form periapsis.
         """
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        escaped = alpha > self.alpha_sh
-        inside = self.horizon_angle(alpha) if self.inner is not None else 0.0
-        phi = jnp.where(escaped, self.escape_angle(alpha), inside)
+        gap = alpha - self.alpha_sh
+        escaped = gap > 0
+        # Both sides, and the periapsis of the escaping one, from one logarithm and one
+        # knot index a ray: one pass over the rays, all fields written together.
+        sides = (self._outer(),) + ((self.inner,) if self.inner is not None else ())
+        phi, u = _look_up(gap, sides, self.periapsis)
+        if self.inner is None:
+            phi = jnp.where(escaped, phi, 0.0)
         cap = 2.0 * jnp.pi * self.max_windings
-        unresolved = (alpha == self.alpha_sh) | ~(phi <= cap)
-        status = jnp.where(unresolved, UNRESOLVED, jnp.where(escaped, ESCAPED, CAPTURED))
-        phi = jnp.where(unresolved, cap, phi)
-        turning = escaped & (jnp.cos(alpha) > 0)
-        if self.periapsis is not None:
-            u = _interpolate(alpha - self.alpha_sh, self.tau, self.dtau, *self.periapsis)
+        phi = jnp.where((gap == 0) | ~(phi < cap), cap, phi)
+        # The status from the finished phi (read back, not recomputed with it: XLA
+        # fuses no value into two consumers on CPU, it writes it out between them).
+        status = jnp.where(phi == cap, UNRESOLVED, jnp.where(escaped, ESCAPED, CAPTURED))
+        turning = escaped & (alpha <= _inward_limit(alpha.dtype))
+        if u is not None:
             r0 = 1.0 / jnp.where(turning, u, 1.0)
         else:
             b = _exact.impact_parameter(alpha, self.distance)
             r0 = _exact.periapsis(jnp.where(turning, b, 2.0 * _exact.B_CRIT))
         r_min = jnp.where(turning, r0, jnp.where(escaped, self.distance, 1.0))
         return TraceResult(phi, status.astype(jnp.int8), r_min.astype(phi.dtype))
+
+
+@functools.cache
+def _inward_limit(dtype) -> np.ndarray:
+    """The largest angle of `dtype` below $\\pi/2$: a ray at $\\alpha$ heads inward
+    ($\\cos\\alpha > 0$, it has a periapsis) exactly when $\\alpha$ is at most this."""
+    half = np.asarray(math.pi / 2, dtype)
+    return half if float(half) < math.pi / 2 else np.nextafter(half, np.asarray(0, dtype))
 
 
 def tabulate(
@@ -256,7 +272,7 @@ def tabulate(
     second error callback (a program with one is not kept by the persistent cache).
     `radius`: as `RayMap.build`'s (the caller has checked $R > D$)."""
     dtype = jnp.result_type(float, distance)
-    concrete_d = is_concrete((distance, radius)) and not tracing()
+    concrete_d = is_concrete((distance, radius))
     # A concrete distance stays on the host (`jnp.asarray` would compile a program).
     d = np.asarray(distance, dtype) if concrete_d else jnp.asarray(distance, dtype)
     if d.ndim != 0:
@@ -274,11 +290,13 @@ def tabulate(
     if not concrete_d:  # part of the caller's program
         return _tabulated(cls, d, r, **settings)
     # A concrete distance: one compiled program a setting, reused for every distance
-    # (not op by op), and the table of
-    # each of the last few distances kept for the next build. An eager jacfwd or
-    # grad through the build traces it, so it stays op by op there.
-    return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()),
-                             None if r is None else r.item())  # fmt: skip
+    # (not op by op), and the table of each of the last few distances kept for the next
+    # build. Inside a caller's trace (a distance fixed in its program) the table is
+    # built the same way, now, and is a constant of that program: not rebuilt on each
+    # of its calls.
+    with jax.ensure_compile_time_eval():
+        return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()),
+                                 None if r is None else r.item())  # fmt: skip
 
 
 def _tabulated(cls, d, r, *, knots, max_windings, captured, alpha_max, exact_slopes,
@@ -431,23 +449,84 @@ def hermite(t, p0, p1, m0, m1):
     )
 
 
-def _interpolate(gap, knots, dtau, phi, slope):
-    # Cubic Hermite in tau = ln(gap) on the uniform knots; below the first knot the
-    # logarithmic law, linear in tau.
-    n = phi.shape[0]
-    tau0 = knots[0]
-    inv = 1.0 / dtau
-    floor_gap = jnp.exp(tau0)
-    tau = jnp.log(jnp.maximum(gap, floor_gap))
-    i = jnp.clip(jnp.floor((tau - tau0) * inv).astype(jnp.int32), 0, n - 2)
-    # The fraction against the knot's own tau (no loss from |tau - tau0| ~ 30); it may
-    # pass 1 by ~1e-13 / dtau at the far end. In float64 the knot's position by
-    # arithmetic is exact to round-off and saves a gather (and its tangent under a
-    # fit's Jacobian); lower precisions read the stored knot.
-    base = tau0 + i * dtau if knots.dtype == jnp.float64 else knots[i]
-    t = jnp.maximum((tau - base) * inv, 0.0)
-    p0, p1, m0, m1 = phi[i], phi[i + 1], slope[i] * dtau, slope[i + 1] * dtau
-    gap_safe = jnp.where(gap > 0, gap, floor_gap)
-    inside = hermite(t, p0, p1, m0, m1)
-    below = phi[0] + slope[0] * (jnp.log(gap_safe) - tau0)
-    return jnp.where(gap < floor_gap, below, inside)
+def _cubic(dtau, phi, slope):
+    """Each knot interval's cubic in $t \\in [0, 1]$, $c_0 + t (c_1 + t (c_2 + t c_3))$:
+    the Hermite interpolant of the values `phi` and slopes `slope` (per unit of
+    $\\tau$) at its two ends."""
+    p0, p1 = phi[:-1], phi[1:]
+    m0, m1 = slope[:-1] * dtau, slope[1:] * dtau
+    d = p1 - p0
+    return p0, m0, 3.0 * d - 2.0 * m0 - m1, m0 + m1 - 2.0 * d
+
+
+def _coefficients(sides, extra):
+    """The interval cubics of `_look_up`'s tables, the sides stacked, and each
+    interval's first knot: computed once a call and written out (fused into the rays'
+    pass, XLA would recompute them from eight reads a ray), or, for a table known when
+    the program is traced, computed here once, a constant of the program."""
+    tables = (sides, extra)
+    xp = np if is_concrete(tables) else jnp
+    if xp is np:
+        sides, extra = jax.tree.map(np.asarray, tables)
+    stacked = [xp.concatenate(c) for c in zip(*(_cubic(*s[1:]) for s in sides), strict=True)]
+    knots = xp.concatenate([s[0][:-1] for s in sides])
+    extra = None if extra is None else _cubic(sides[0][1], *extra)
+    out = (stacked, knots, extra)
+    if xp is np:
+        return jax.tree.map(jnp.asarray, out)
+    return fusion_barrier(out, sides[0][1])
+
+
+def _look_up(gap, sides, extra=None):
+    """Interpolate tables uniform in $\\tau = \\ln|{\\rm gap}|$ at `gap`.
+
+    `sides`: one table `(knots, dtau, values, slopes)`, read at `gap` (> 0), or two
+    with the same number of knots, the first read where `gap > 0` and the second where
+    `gap < 0`. `extra`: `(values, slopes)` on the first table's knots, or `None`.
+
+    One logarithm a ray, vectorised (`_fastmath.log`), gives the knot index and the
+    fraction $t$ in it; each interval's cubic is read as four coefficients (the sides
+    stacked, so a ray reads one row whichever its side). Below the first knot the
+    logarithmic law is extrapolated, linear in $\\tau$; `gap == 0` reads the first knot.
+
+    **Returns:** `(value, extra value or None)`, each of the shape of `gap`.
+    """
+    knots, dtau = sides[0][0], sides[0][1]
+    n = knots.shape[0]
+    two = len(sides) == 2
+    inner = (gap < 0) if two else None
+
+    def per_side(first, second):
+        return jnp.where(inner, second, first) if two else first
+
+    stacked, starts, extra = _coefficients(sides, extra)
+    tau0 = per_side(knots[0], sides[-1][0][0])
+    inv = per_side(1.0 / dtau, 1.0 / sides[-1][1])
+    first = per_side(jnp.exp(knots[0]), jnp.exp(sides[-1][0][0]))
+    size = jnp.abs(gap) if two else gap
+    size = jnp.where(size > 0, size, first)  # gap <= 0: the first knot
+    tau = _fastmath.log(size)
+    if extra is not None and gap.size and jax.default_backend() == "cpu":
+        # Two tables read at one tau: XLA's CPU backend fuses no value into two
+        # consumers (no multi-output fusion, which GPUs have), it computes it in each;
+        # tau written out once costs less than a second logarithm and index (anchored
+        # on a ray, never NaN: not folded). benchmarks/floor.py measures it.
+        tau = fusion_barrier(tau, jnp.nan_to_num(jnp.ravel(gap)[0]))
+    x = (tau - tau0) * inv
+    i = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, n - 2)
+    row = i + per_side(0, n - 1)
+    if knots.dtype == jnp.float64:
+        # The fraction by arithmetic: exact to round-off, and no read of the knot.
+        t = x - i
+    else:
+        # In lower precisions x - i loses ulp(n) ~ 5e-4 of an interval: the fraction
+        # against the knot's own tau (no loss from |tau - tau0| ~ 30).
+        t = (tau - starts[row]) * inv
+    below = t < 0  # before the first knot: the linear law
+
+    def evaluate(coefficients, at):
+        c0, c1, c2, c3 = (c[at] for c in coefficients)
+        return c0 + t * (c1 + t * jnp.where(below, 0.0, c2 + t * c3))
+
+    value = evaluate(stacked, row)
+    return value, None if extra is None else evaluate(extra, i)
