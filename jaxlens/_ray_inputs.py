@@ -112,6 +112,9 @@ def bad_alpha(alpha):
     `eqx.error_if`, so that the rays do not wait for the check. `None` when checked."""
     a = concrete(alpha)
     if a is not None:
+        # Two reductions, no array of flags (a NaN is the minimum and the maximum).
+        if a.size == 0 or (np.min(a) >= 0 and np.max(a) <= _ALPHA_TOP):
+            return None
         bad = ~((a >= 0) & (a <= _ALPHA_TOP))
         if np.any(bad):
             raise ValueError(

@@ -182,11 +182,9 @@ class Table(AbstractMethod):
             distance = eqx.error_if(
                 d, jnp.any(distance != d), "method='table' needs one distance for all rays"
             )
-        # Tie the distance to the rays (x * 0.0 is not folded for floats), so that a
-        # constant distance does not let XLA fold away the fusion boundary that keeps
-        # the knots from being recomputed per ray (see RayMap.build).
-        distance = distance + 0.0 * jnp.ravel(alpha)[0]
-        # `trace` checked the distance (no second error callback in its program).
+        # `trace` checked the distance (no second error callback in its program). A
+        # distance known when the program is traced gets its table built once and kept
+        # (`tabulate`); a traced one, its table built in the program.
         ray_map = tabulate(
             distance, accuracy=self.accuracy, max_windings=max_windings, captured=True,
             **TABLE_SETTINGS,
@@ -217,7 +215,7 @@ def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
 
 
-@program(profile="legacy_fusion_o1")
+@program(profile="xla")
 def _through_map(ray_map, alpha):
     return ray_map(alpha)
 
@@ -234,20 +232,41 @@ def _table_rays(method: "Table", alpha, distance, max_windings):
     return _through_map(ray_map, alpha)
 
 
+def _aligned(m: int, dtype) -> np.ndarray:
+    """An uninitialised host array of `m` values whose data starts on a 64-byte
+    boundary: the CPU device adopts such an array without copying it."""
+    item = np.dtype(dtype).itemsize
+    buf = np.empty(m + 64 // item, dtype)
+    start = (-buf.ctypes.data % 64) // item
+    return buf[start : start + m]
+
+
 def _eager(method, alpha, distance, dtype, max_windings):
     """`method` on concrete rays as one compiled program, not op by op (a table at one
     distance: two, `_table_rays`): the rays are flattened and padded to `_bucket` of
     their count (with a ray that escapes), so every batch size up to the bucket reuses
-    the program; the result is cut back. Host arrays are padded on the host (no device
-    op to compile); device arrays stay on their device."""
+    the program; the result is cut back. Host arrays (and, on CPU, device arrays, which
+    are host memory there) are padded on the host into an aligned buffer that the
+    device adopts without a copy (no device op to compile); device arrays elsewhere are
+    padded on their device."""
     shape = jnp.broadcast_shapes(jnp.shape(alpha), distance.shape)
     n = math.prod(shape)
     m = _bucket(n)
 
+    host = jax.default_backend() == "cpu"  # device arrays are host memory there
+
     def padded(x, fill):
-        xp = jnp if isinstance(x, jax.Array) else np
-        x = xp.broadcast_to(xp.asarray(x, dtype), shape).ravel()
-        return xp.concatenate([x, xp.full(m - n, fill, dtype)]) if m > n else x
+        if isinstance(x, jax.Array) and not host:
+            x = jnp.broadcast_to(x.astype(dtype), shape).ravel()
+            return jnp.concatenate([x, jnp.full(m - n, fill, dtype)]) if m > n else x
+        x = np.asarray(x, dtype)
+        if m == n and x.shape == shape:
+            return x.ravel()
+        out = _aligned(m, dtype)
+        np.copyto(out[:n].reshape(shape), x)
+        out[n:] = fill
+        # Placed here, not by the program's call, which would copy a host array.
+        return to_device(out)
 
     a = padded(alpha, 0.5 * math.pi)
     if isinstance(method, Table) and distance.ndim == 0:
@@ -340,7 +359,11 @@ def trace(
     later calls with the same method and dtype and a ray count in the same bucket
     (counts are padded to 2^k or 1.5 x 2^k, at least 1024); the table method at one
     distance as two, the table's and the look-up's, and the tables of the last 16
-    distances are kept for the next call at one of them.
+    distances are kept for the next call at one of them. Under `jit`, a distance known
+    when the program is traced (a number, not a traced argument) gets its table built
+    then, once (and kept with those), as a constant of the program; a traced distance
+    has its table built inside the program, on every call. Asking for `phi` alone
+    under `jit` skips the rest (`benchmarks/results/floor.md` gives the costs).
     """
     _check_number("accuracy", accuracy, "> 0 (radians)", lambda v: v > 0)
     _check_number("max_windings", max_windings, "> 0 (turns)", lambda v: v > 0)
@@ -362,13 +385,18 @@ def trace(
             method = "table"  # many rays, one camera: tabulate once, interpolate
         method = method_for(method, accuracy)
     if traced:  # part of the caller's program
-        result = method(jnp.asarray(alpha, dtype), distance, max_windings)
+        alpha = jnp.asarray(alpha, dtype)
+        if alpha_bad is not None:
+            # Raised through a zero added to the rays: the addition joins the first pass
+            # over them, where `error_if` on a result would copy it and split the
+            # passes that share it.
+            message = "alpha must be " + ALPHA_RANGE
+            alpha = alpha + eqx.error_if(jnp.zeros((), dtype), alpha_bad, message)
+        result = method(alpha, distance, max_windings)
     else:  # host rays are padded on the host, not copied to the device first
         result = _eager(method, alpha, distance, dtype, max_windings)
-    if alpha_bad is not None:
-        phi = eqx.error_if(result.phi, alpha_bad, "alpha must be " + ALPHA_RANGE)
-        result = eqx.tree_at(lambda r: r.phi, result, phi)
     if throw:
-        phi = RayStatus.unresolved.error_if(result.phi, jnp.any(result.unresolved))
+        unresolved = jnp.any(result.unresolved)
+        phi = result.phi + RayStatus.unresolved.error_if(jnp.zeros((), dtype), unresolved)
         result = eqx.tree_at(lambda r: r.phi, result, phi)
     return result
