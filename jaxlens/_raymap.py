@@ -27,7 +27,7 @@ from ._compile import program
 from ._messages import shown
 from ._ray_inputs import check_distance, check_dtype, check_real
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
-from ._util import concrete, fusion_barrier, is_concrete
+from ._util import concrete, fusion_barrier, is_concrete, run_now, tracing
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -294,9 +294,11 @@ def tabulate(
     # build. Inside a caller's trace (a distance fixed in its program) the table is
     # built the same way, now, and is a constant of that program: not rebuilt on each
     # of its calls.
-    with jax.ensure_compile_time_eval():
-        return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()),
-                                 None if r is None else r.item())  # fmt: skip
+    key = (cls, d.dtype.name, d.item(), tuple(settings.items()), None if r is None else r.item())
+    if not tracing():
+        return _tabulated_recent(*key)
+    with run_now():  # not staged into the caller's trace
+        return _tabulated_recent(*key)
 
 
 def _tabulated(cls, d, r, *, knots, max_windings, captured, alpha_max, exact_slopes,

@@ -215,7 +215,7 @@ def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
 
 
-@program(profile="xla")
+@program(profile="legacy_fusion_o1")
 def _through_map(ray_map, alpha):
     return ray_map(alpha)
 
