@@ -92,6 +92,42 @@ def test_eager_table_trace_keeps_the_table_of_its_distance():
     assert not np.array_equal(np.asarray(other.phi), np.asarray(again.phi))
 
 
+def _primitives(jaxpr) -> set:
+    """The names of the primitives in `jaxpr` and in every jaxpr nested in it."""
+    names = set()
+    for eqn in jaxpr.eqns:
+        names.add(eqn.primitive.name)
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, list | tuple) else [param]:
+                inner = sub if hasattr(sub, "eqns") else getattr(sub, "jaxpr", None)
+                if inner is not None and hasattr(inner, "eqns"):
+                    names |= _primitives(inner)
+    return names
+
+
+def test_a_distance_fixed_under_jit_has_its_table_built_once():
+    # A distance known when a program is traced: its table is built then, kept with the
+    # eager ones, and read as a constant; the program holds the look-up alone (no
+    # closed form, whose roots take square roots). A traced distance builds it inside.
+    from jaxlens import _raymap
+
+    alpha = jnp.linspace(0.13, 3.0, 64)
+    _raymap._tabulated_recent.cache_clear()
+    fixed = jax.make_jaxpr(lambda a: jl.trace(a, 16.0, method="table", accuracy=1e-9))(alpha)
+    assert _raymap._tabulated_recent.cache_info().misses == 1
+    jax.make_jaxpr(lambda a: jl.trace(a, 16.0, method="table", accuracy=1e-9).phi)(alpha)
+    assert _raymap._tabulated_recent.cache_info().hits == 1
+    traced = jax.make_jaxpr(
+        lambda a, d: jl.trace(a, d, method="table", accuracy=1e-9).phi
+    )(alpha, 16.0)  # fmt: skip
+    assert "sqrt" not in _primitives(fixed.jaxpr)
+    assert "sqrt" in _primitives(traced.jaxpr)
+    ours = jax.jit(lambda a: jl.trace(a, 16.0, method="table", accuracy=1e-9))(alpha)
+    built = jax.jit(lambda a, d: jl.trace(a, d, method="table", accuracy=1e-9))(alpha, 16.0)
+    for got, want in zip(jax.tree.leaves(ours), jax.tree.leaves(built), strict=True):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-13)
+
+
 def test_the_look_up_compiled_ahead_is_the_one_the_table_trace_runs(jax_events):
     # An eager table trace compiles its look-up on a thread while the table's program
     # compiles: the trace must then find it compiled (one compile, not a second).
