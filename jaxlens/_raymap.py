@@ -149,7 +149,7 @@ class RayMap(eqx.Module):
         """Interpolated escape angle (radians) at `alpha`; meaningful where
         `alpha > alpha_sh` (escaping rays), finite everywhere."""
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        return _look_up(alpha - self.alpha_sh, (self._outer(),))[0]
+        return _look_up(alpha, self.alpha_sh, (self._outer(),))[0]
 
     def _outer(self) -> tuple:
         return (self.tau, self.dtau, self.phi, self.slope)
@@ -215,7 +215,7 @@ class RayMap(eqx.Module):
         if self.inner is None:
             raise ValueError("this RayMap was built without captured=True")
         alpha = jnp.asarray(alpha, self.phi.dtype)
-        return _look_up(self.alpha_sh - alpha, (self.inner,))[0]
+        return _look_up(alpha, self.alpha_sh, (self.inner,), sign=-1.0)[0]
 
     def __call__(self, alpha: ArrayLike):
         """Trace rays at local angles `alpha` (radians) through the table.
@@ -228,7 +228,7 @@ class RayMap(eqx.Module):
         # Both sides, and the periapsis of the escaping one, from one logarithm and one
         # knot index a ray: one pass over the rays, all fields written together.
         sides = (self._outer(),) + ((self.inner,) if self.inner is not None else ())
-        phi, u = _look_up(gap, sides, self.periapsis)
+        phi, u = _look_up(alpha, self.alpha_sh, sides, self.periapsis)
         if self.inner is None:
             phi = jnp.where(escaped, phi, 0.0)
         cap = 2.0 * jnp.pi * self.max_windings
@@ -479,8 +479,9 @@ def _coefficients(sides, extra):
     return fusion_barrier(out, sides[0][1])
 
 
-def _look_up(gap, sides, extra=None):
-    """Interpolate tables uniform in $\\tau = \\ln|{\\rm gap}|$ at `gap`.
+def _look_up(alpha, origin, sides, extra=None, sign=1.0):
+    """Interpolate tables uniform in $\\tau = \\ln|{\\rm gap}|$ at
+    ${\\rm gap} = $ `sign` (`alpha` - `origin`).
 
     `sides`: one table `(knots, dtau, values, slopes)`, read at `gap` (> 0), or two
     with the same number of knots, the first read where `gap > 0` and the second where
@@ -491,29 +492,38 @@ def _look_up(gap, sides, extra=None):
     stacked, so a ray reads one row whichever its side). Below the first knot the
     logarithmic law is extrapolated, linear in $\\tau$; `gap == 0` reads the first knot.
 
-    **Returns:** `(value, extra value or None)`, each of the shape of `gap`.
+    **Returns:** `(value, extra value or None)`, each of the shape of `alpha`.
     """
     knots, dtau = sides[0][0], sides[0][1]
     n = knots.shape[0]
     two = len(sides) == 2
+    gap = sign * (alpha - origin)
     inner = (gap < 0) if two else None
 
-    def per_side(first, second):
+    def per_side(first, second, inner=inner):
         return jnp.where(inner, second, first) if two else first
 
     stacked, starts, extra = _coefficients(sides, extra)
     tau0 = per_side(knots[0], sides[-1][0][0])
     inv = per_side(1.0 / dtau, 1.0 / sides[-1][1])
-    first = per_side(jnp.exp(knots[0]), jnp.exp(sides[-1][0][0]))
-    size = jnp.abs(gap) if two else gap
-    size = jnp.where(size > 0, size, first)  # gap <= 0: the first knot
-    tau = _fastmath.log(size)
-    if extra is not None and gap.size and jax.default_backend() == "cpu":
+    first = (jnp.exp(knots[0]), jnp.exp(sides[-1][0][0]))
+
+    def log_size(a):  # ln|gap|, the first knot's where gap == 0
+        g = sign * (a - origin)
+        size = jnp.abs(g) if two else g
+        return _fastmath.log(jnp.where(size > 0, size, per_side(*first, inner=g < 0)))
+
+    if extra is not None and alpha.size and jax.default_backend() == "cpu":
         # Two tables read at one tau: XLA's CPU backend fuses no value into two
-        # consumers (no multi-output fusion, which GPUs have), it computes it in each;
-        # tau written out once costs less than a second logarithm and index (anchored
-        # on a ray, never NaN: not folded). benchmarks/floor.py measures it.
-        tau = fusion_barrier(tau, jnp.nan_to_num(jnp.ravel(gap)[0]))
+        # consumers (no multi-output fusion, which GPUs have), it computes it in each.
+        # tau computed in a pass of its own, from the rays as given, and written out
+        # costs less than a second logarithm and index: the pass is the branch of a
+        # `lax.cond` on a predicate XLA cannot fold (a ray, never NaN), a fusion
+        # boundary. benchmarks/floor.py measures it.
+        ok = ~jnp.isnan(jnp.nan_to_num(jnp.ravel(alpha)[0]))
+        tau = jax.lax.cond(ok, log_size, jnp.negative, alpha)
+    else:
+        tau = log_size(alpha)
     x = (tau - tau0) * inv
     i = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, n - 2)
     row = i + per_side(0, n - 1)

@@ -176,7 +176,10 @@ class Table(AbstractMethod):
 
     accuracy: float = eqx.field(static=True, default=1e-10)
 
-    def __call__(self, alpha, distance, max_windings):
+    def __call__(self, alpha, distance, max_windings, check=None):
+        """As `AbstractMethod.__call__`; `check`: `None`, or a zero scalar that carries
+        the caller's run-time checks (`eqx.error_if`), tied to the shadow angle, so that
+        every ray depends on it at no extra pass over the rays."""
         if jnp.ndim(distance) != 0:
             d = jnp.ravel(distance)[0]
             distance = eqx.error_if(
@@ -189,6 +192,8 @@ class Table(AbstractMethod):
             distance, accuracy=self.accuracy, max_windings=max_windings, captured=True,
             **TABLE_SETTINGS,
         )  # fmt: skip
+        if check is not None:
+            ray_map = eqx.tree_at(lambda m: m.alpha_sh, ray_map, ray_map.alpha_sh + check)
         return ray_map(alpha)
 
 
@@ -215,7 +220,7 @@ def _compiled(method, alpha, distance, max_windings):
     return method(alpha, distance, max_windings)
 
 
-@program(profile="legacy_fusion_o1")
+@program(profile="xla")
 def _through_map(ray_map, alpha):
     return ray_map(alpha)
 
@@ -386,13 +391,18 @@ def trace(
         method = method_for(method, accuracy)
     if traced:  # part of the caller's program
         alpha = jnp.asarray(alpha, dtype)
-        if alpha_bad is not None:
-            # Raised through a zero added to the rays: the addition joins the first pass
-            # over them, where `error_if` on a result would copy it and split the
-            # passes that share it.
+        if alpha_bad is None:
+            result = method(alpha, distance, max_windings)
+        else:
+            # Raised through a zero the rays depend on (`error_if` on a result would
+            # copy it and split the passes that share it): the table's shadow angle
+            # takes it, other methods the rays (the addition joins their first pass).
             message = "alpha must be " + ALPHA_RANGE
-            alpha = alpha + eqx.error_if(jnp.zeros((), dtype), alpha_bad, message)
-        result = method(alpha, distance, max_windings)
+            check = eqx.error_if(jnp.zeros((), dtype), alpha_bad, message)
+            if isinstance(method, Table):
+                result = method(alpha, distance, max_windings, check=check)
+            else:
+                result = method(alpha + check, distance, max_windings)
     else:  # host rays are padded on the host, not copied to the device first
         result = _eager(method, alpha, distance, dtype, max_windings)
     if throw:
