@@ -159,7 +159,7 @@ def main(argv=None):
     if "table" in _methods():
         cands["trace(method='table', accuracy=1e-9), jitted"] = (
             jax.jit(lambda a: _pair(jaxlens.trace(a, D, method="table", accuracy=ACCURACY))),
-            "builds the RayMap inside every call",
+            "the RayMap built once, when the program is traced (the distance is fixed)",
         )
     if hasattr(jaxlens, "RayMap"):
         ray_map = jaxlens.RayMap.build(D, accuracy=ACCURACY)
