@@ -476,6 +476,11 @@ def _coefficients(sides, extra):
     out = (stacked, knots, extra)
     if xp is np:
         return jax.tree.map(jnp.asarray, out)
+    if len(sides) == 1 and extra is None:
+        # One table (the renderer's escape angle): left to XLA, which reads the knot
+        # values in the rays' pass; a 1080p render was 5-10 % slower with them written
+        # out apart (benchmarks/bench_render.py).
+        return out
     return fusion_barrier(out, sides[0][1])
 
 
@@ -513,13 +518,14 @@ def _look_up(alpha, origin, sides, extra=None, sign=1.0):
         size = jnp.abs(g) if two else g
         return _fastmath.log(jnp.where(size > 0, size, per_side(*first, inner=g < 0)))
 
-    if extra is not None and alpha.size and jax.default_backend() == "cpu":
-        # Two tables read at one tau: XLA's CPU backend fuses no value into two
-        # consumers (no multi-output fusion, which GPUs have), it computes it in each.
-        # tau computed in a pass of its own, from the rays as given, and written out
-        # costs less than a second logarithm and index: the pass is the branch of a
-        # `lax.cond` on a predicate XLA cannot fold (a ray, never NaN), a fusion
-        # boundary. benchmarks/floor.py measures it.
+    if alpha.size and jax.default_backend() == "cpu":
+        # tau computed in a pass of its own and written out. The logarithm is plain
+        # multiply-adds, cheap in XLA's eyes, and XLA's CPU backend (without the
+        # multi-output fusion GPUs have) copies cheap code into every consumer: into
+        # the Phi and periapsis look-ups of a whole `TraceResult`, into each use of a
+        # render's escape angle (a 1080p render took 40 % more CPU time). The pass is
+        # the branch of a `lax.cond` on a predicate XLA cannot fold (a ray, never
+        # NaN), a fusion boundary. benchmarks/floor.py measures it.
         ok = ~jnp.isnan(jnp.nan_to_num(jnp.ravel(alpha)[0]))
         tau = jax.lax.cond(ok, log_size, jnp.negative, alpha)
     else:
