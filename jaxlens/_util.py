@@ -105,14 +105,11 @@ def fusion_barrier(tree, anchor):
     away before fusion on CPU, but a `lax.cond` on a runtime predicate is a fusion
     boundary on every backend. `anchor` is a runtime scalar (e.g. the camera distance,
     tied to the data so that XLA cannot fold it); the branch taken returns `tree`, the
-    other (taken only for a NaN anchor, which the value checks reject) its float leaves
-    negated and the others zeros: computed from `tree`, not a constant, so that XLA
-    writes no array of zeros on every call.
+    other (taken only for a NaN anchor, which the value checks reject) zeros.
     """
-
-    def other(t):
-        return jax.tree.map(
-            lambda v: -v if jnp.issubdtype(v.dtype, jnp.inexact) else jnp.zeros_like(v), t
-        )
-
-    return jax.lax.cond(~jnp.isnan(anchor), lambda t: t, other, tree)
+    return jax.lax.cond(
+        ~jnp.isnan(anchor),
+        lambda t: t,
+        lambda t: jax.tree.map(jnp.zeros_like, t),
+        tree,
+    )
