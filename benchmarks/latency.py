@@ -367,6 +367,7 @@ def write_report(rows, inproc, load, common, ablation=()):
                          f"{r['name']} | {with_:.2f} | "
                          f"{r['wall']:.2f} | {100 * (r['wall'] / with_ - 1):+.0f} % |")  # fmt: skip
     res = common.RESULTS
+    res.mkdir(parents=True, exist_ok=True)
     blob = {"rows": rows, "warm": inproc, "profiles": list(ablation)}
     (res / "latency.json").write_text(json.dumps(blob, indent=1) + "\n")
     (res / "latency.md").write_text("\n".join(lines) + "\n")
