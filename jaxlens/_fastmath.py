@@ -1,16 +1,16 @@
 """Vectorisable arctan2, sin, cos (float32) and log (float32 and float64) for hot paths.
 
-XLA's CPU backend evaluates float32 `atan2`, `sin` and `cos`, and `log` in both
-precisions, one element at a time (about 45, 14, 10 and 6-10 ns each on the 2-core
-benchmark machine, against 0.5 ns for a multiply-add), which made them most of a
-1080p render and of a table look-up. These are plain multiply-adds, bit operations
+XLA's CPU backend evaluates float32 `atan2`, `sin` and `cos` one element at a time
+(about 45, 14 and 10 ns each on the 2-core benchmark machine, against 0.5 ns for a
+multiply-add), which made them most of a 1080p render, and `log` likewise in float64,
+which made it most of a table look-up. These are plain multiply-adds, bit operations
 and selects that XLA vectorises on CPU and fuses on GPU. The float32 trigonometric
-functions are the Cephes single-precision polynomials (S. L. Moshier) after an
-exact Cody-Waite range reduction, with errors of a few float32 ulps
-(tests/test_render.py checks them against float64 NumPy); inputs of any other dtype
-(float64) go to `jax.numpy`, which is correctly rounded there. `log` splits off the
-binary exponent and sums the series of $2\\operatorname{artanh}$ on the mantissa, within
-about 2 ulps in both precisions (tests/test_fastmath.py).
+functions are the Cephes single-precision polynomials (S. L. Moshier) after an exact
+Cody-Waite range reduction, with errors of a few float32 ulps (tests/test_render.py
+checks them against float64 NumPy); inputs of any other dtype (float64) go to
+`jax.numpy`, which is correctly rounded there. `log` splits off the binary exponent and
+sums the series of $2\\operatorname{artanh}$ on the mantissa, within 4 ulps (float64)
+and 3 (float32) of the correctly rounded value (tests/test_fastmath.py).
 """
 
 import math
@@ -99,9 +99,9 @@ def _reciprocal(y, steps):
 @jax.custom_jvp
 def log(x):
     """Natural logarithm, elementwise, for float32 and float64 arrays: `jnp.log`
-    within about 2 ulps (0 gives -inf, negatives NaN, subnormals handled), and
-    vectorised by XLA on CPU (3 CPU-ns a float64 value on the benchmark machine,
-    against 10 for `jnp.log`). The derivative is $1/x$, in both modes."""
+    within 4 ulps (float64) and 3 (float32), 0 giving -inf, negatives NaN, subnormals
+    handled; vectorised by XLA on CPU, where `jnp.log` is not
+    (`benchmarks/results/floor.md`). The derivative is $1/x$, in both modes."""
     x = jnp.asarray(x)
     dtype = np.dtype(x.dtype)
     if dtype not in _LN2:

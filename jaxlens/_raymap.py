@@ -478,8 +478,8 @@ def _coefficients(sides, extra):
         return jax.tree.map(jnp.asarray, out)
     if len(sides) == 1 and extra is None:
         # One table (the renderer's escape angle): left to XLA, which reads the knot
-        # values in the rays' pass; a 1080p render was 5-10 % slower with them written
-        # out apart (benchmarks/bench_render.py).
+        # values in the rays' pass; a render was slower with them written out apart
+        # (benchmarks/bench_render.py).
         return out
     return fusion_barrier(out, sides[0][1])
 
@@ -523,7 +523,7 @@ def _look_up(alpha, origin, sides, extra=None, sign=1.0):
         # multiply-adds, cheap in XLA's eyes, and XLA's CPU backend (without the
         # multi-output fusion GPUs have) copies cheap code into every consumer: into
         # the Phi and periapsis look-ups of a whole `TraceResult`, into each use of a
-        # render's escape angle (a 1080p render took 40 % more CPU time). The pass is
+        # render's escape angle (benchmarks/bench_render.py). The pass is
         # the branch of a `lax.cond` on a predicate XLA cannot fold (a ray, never
         # NaN), a fusion boundary. benchmarks/floor.py measures it.
         ok = ~jnp.isnan(jnp.nan_to_num(jnp.ravel(alpha)[0]))
