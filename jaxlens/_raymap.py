@@ -513,10 +513,11 @@ def _look_up(alpha, origin, sides, extra=None, sign=1.0):
     inv = per_side(1.0 / dtau, 1.0 / sides[-1][1])
     first = (jnp.exp(knots[0]), jnp.exp(sides[-1][0][0]))
 
-    def log_size(a):  # ln|gap|, the first knot's where gap == 0
+    def log_size(a):  # ln|gap|: the first knot's where gap <= 0 (one table), NaN kept
         g = sign * (a - origin)
         size = jnp.abs(g) if two else g
-        return _fastmath.log(jnp.where(size > 0, size, per_side(*first, inner=g < 0)))
+        keep = (size > 0) | jnp.isnan(size)
+        return _fastmath.log(jnp.where(keep, size, per_side(*first, inner=g < 0)))
 
     if alpha.size and jax.default_backend() == "cpu":
         # tau computed in a pass of its own and written out. The logarithm is plain

@@ -128,6 +128,19 @@ def test_a_distance_fixed_under_jit_has_its_table_built_once():
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-13)
 
 
+def test_a_nan_ray_is_unresolved_not_captured():
+    # A NaN angle reads no knot: NaN escape angle, and an unresolved ray in the whole
+    # result (not a captured one with the first knot's azimuth), eagerly and jitted.
+    table = jl.RayMap.build(20.0, accuracy=1e-9, captured=True)
+    alpha = jnp.array([np.nan, 0.3, 0.05])
+    for call in (lambda m, a: m(a), jax.jit(lambda m, a: m(a))):
+        r = call(table, alpha)
+        assert bool(r.unresolved[0]) and not bool(r.unresolved[1])
+        assert not bool(r.captured[0]) and bool(r.captured[2])
+    phi = np.asarray(table.escape_angle(alpha))
+    assert np.isnan(phi[0]) and np.all(np.isfinite(phi[1:]))
+
+
 def test_the_look_up_compiled_ahead_is_the_one_the_table_trace_runs(jax_events):
     # An eager table trace compiles its look-up on a thread while the table's program
     # compiles: the trace must then find it compiled (one compile, not a second).
