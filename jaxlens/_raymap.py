@@ -226,7 +226,7 @@ class RayMap(eqx.Module):
         gap = alpha - self.alpha_sh
         escaped = gap > 0
         # Both sides, and the periapsis of the escaping one, from one logarithm and one
-        # knot index a ray: one pass over the rays, all fields written together.
+        # knot index a ray (on CPU a pass of their own, then one pass an output).
         sides = (self._outer(),) + ((self.inner,) if self.inner is not None else ())
         phi, u = _look_up(alpha, self.alpha_sh, sides, self.periapsis)
         if self.inner is None:
