@@ -27,7 +27,7 @@ from ._compile import program
 from ._messages import shown
 from ._ray_inputs import check_distance, check_dtype, check_real
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
-from ._util import concrete, fusion_barrier, is_concrete, run_now, tracing
+from ._util import concrete, fusion_barrier, is_concrete, run_now
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
 # |phi''''| <= ~pi on the escaping branch (measured by tests/test_raymap.py).
@@ -294,11 +294,9 @@ def tabulate(
     # build. Inside a caller's trace (a distance fixed in its program) the table is
     # built the same way, now, and is a constant of that program: not rebuilt on each
     # of its calls.
-    key = (cls, d.dtype.name, d.item(), tuple(settings.items()), None if r is None else r.item())
-    if not tracing():
-        return _tabulated_recent(*key)
-    with run_now():  # not staged into the caller's trace
-        return _tabulated_recent(*key)
+    with run_now():  # inside a caller's trace, not staged into it
+        return _tabulated_recent(cls, d.dtype.name, d.item(), tuple(settings.items()),
+                                 None if r is None else r.item())  # fmt: skip
 
 
 def _tabulated(cls, d, r, *, knots, max_windings, captured, alpha_max, exact_slopes,
@@ -462,8 +460,8 @@ def _cubic(dtau, phi, slope):
 
 
 def _coefficients(sides, extra):
-    """The interval cubics of `_look_up`'s tables, the sides stacked, and each
-    interval's first knot: computed once a call and written out (fused into the rays'
+    """The interval cubics of `_look_up`'s tables, the sides stacked, and (below
+    float64) each interval's first knot: computed once a call and written out (fused into the rays'
     pass, XLA would recompute them from eight reads a ray), or, for a table known when
     the program is traced, computed here once, a constant of the program."""
     tables = (sides, extra)
@@ -471,7 +469,8 @@ def _coefficients(sides, extra):
     if xp is np:
         sides, extra = jax.tree.map(np.asarray, tables)
     stacked = [xp.concatenate(c) for c in zip(*(_cubic(*s[1:]) for s in sides), strict=True)]
-    knots = xp.concatenate([s[0][:-1] for s in sides])
+    float64 = sides[0][0].dtype == np.float64  # reads no knot (see `_look_up`)
+    knots = None if float64 else xp.concatenate([s[0][:-1] for s in sides])
     extra = None if extra is None else _cubic(sides[0][1], *extra)
     out = (stacked, knots, extra)
     if xp is np:

@@ -266,10 +266,11 @@ def _eager(method, alpha, distance, dtype, max_windings):
             return jnp.concatenate([x, jnp.full(m - n, fill, dtype)]) if m > n else x
         x = np.asarray(x, dtype)
         if m == n and x.shape == shape:
-            return x.ravel()
-        out = _aligned(m, dtype)
-        np.copyto(out[:n].reshape(shape), x)
-        out[n:] = fill
+            out = x.ravel()  # adopted without a copy where it is aligned
+        else:
+            out = _aligned(m, dtype)
+            np.copyto(out[:n].reshape(shape), x)
+            out[n:] = fill
         # Placed here, not by the program's call, which would copy a host array.
         return to_device(out)
 
