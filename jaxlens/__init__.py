@@ -195,7 +195,7 @@ def _version() -> str:
     import importlib.metadata
 
     try:
-        return importlib.metadata.version("jaxlens")
+        return importlib.metadata.version("jaxlens-bh")  # the distribution's name
     except importlib.metadata.PackageNotFoundError:  # pragma: no cover
         return "0.0.0"
 

@@ -23,7 +23,7 @@ def register(sub):
         "animate",
         help="render an animation (frames and a GIF or MP4) of a camera path",
         description="Render the frames of a camera path into an animated GIF (-o NAME.gif) "
-        "or an H.264 MP4 video (-o NAME.mp4, needs PyAV: pip install 'jaxlens[video]'), "
+        "or an H.264 MP4 video (-o NAME.mp4, needs PyAV: pip install 'jaxlens-bh[video]'), "
         "and, with --frames-dir, as image files too. Frames are rendered in groups and "
         "written as they come: memory holds one group, not the animation. Paths: approach "
         "(distance, R_S, geometric steps), orbit (camera position around the hole, "

@@ -777,7 +777,7 @@ def _av():
             import av
     except ImportError as e:
         raise MissingExtraError(
-            "writing MP4 video needs PyAV: pip install 'jaxlens[video]' (or pip install av)",
+            "writing MP4 video needs PyAV: pip install 'jaxlens-bh[video]' (or pip install av)",
             name="av",
         ) from e
     return av
@@ -810,7 +810,7 @@ def write_video(path, frames, *, exposure: float = 0.0, fps: float = 12.0) -> Pa
     2, fixed quantiser 2). 4:2:0 needs an even width and height: an odd width (height)
     is padded by repeating the last column (row), so the video is then one pixel wider
     (taller) than the frames. PyAV is the optional `video` extra
-    (`pip install 'jaxlens[video]'`); without it this raises `MissingExtraError`
+    (`pip install 'jaxlens-bh[video]'`); without it this raises `MissingExtraError`
     (an `ImportError` and a `ValueError`) saying so.
 
     **Arguments:** `path` (.mp4); `frames`: `(N, H, W, 3)` linear radiance, or an

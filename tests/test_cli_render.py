@@ -474,7 +474,7 @@ def test_animate_mp4_without_pyav_fails_before_rendering(tmp_path, capsys, monke
     monkeypatch.setattr(jl, "render", not_reached)
     monkeypatch.setitem(sys.modules, "av", None)  # `import av` raises ImportError
     code, _, err = run(["animate", "--size", "8x6", "-o", str(tmp_path / "a.mp4")], capsys)
-    assert code == 2 and err.count("\n") == 1 and "pip install 'jaxlens[video]'" in err
+    assert code == 2 and err.count("\n") == 1 and "pip install 'jaxlens-bh[video]'" in err
     assert os.listdir(tmp_path) == []
 
 

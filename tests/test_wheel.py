@@ -20,7 +20,7 @@ def test_wheel_works_outside_the_repository(tmp_path):
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert build.returncode == 0, build.stderr[-3000:]
-    (wheel,) = wheels.glob("jaxlens-*.whl")
+    (wheel,) = wheels.glob("jaxlens_bh-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert "jaxlens/_fit/ring_table_data.py" in names and "jaxlens/__main__.py" in names
     assert not [n for n in names if n.startswith(("tests/", "docs/", "notebooks/"))]

@@ -35,7 +35,7 @@ def _astropy():
         from astropy.wcs import WCS, FITSFixedWarning
     except ImportError as e:
         raise MissingExtraError(
-            "reading FITS files needs astropy: pip install 'jaxlens[fits]' (or astropy>=6)",
+            "reading FITS files needs astropy: pip install 'jaxlens-bh[fits]' (or astropy>=6)",
             name="astropy",
         ) from e
     return fits, WCS, FITSFixedWarning, u
