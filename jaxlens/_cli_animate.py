@@ -82,7 +82,7 @@ def run(args):
 
     import jaxlens as jl  # the public functions, looked up when the command runs
 
-    out = _io.check_output_path(args.output)
+    out = cli.output_file(args.output)  # its folder is made once the arguments are checked
     video = out.suffix.lower() == ".mp4"
     if out.suffix.lower() not in _io.ANIMATION_FORMATS:
         raise ValueError(f"output {str(out)!r} must be a .gif or .mp4 file (the frames go beside "
@@ -118,6 +118,9 @@ def run(args):
     dtype = pixel_dtype(args, scene, distances=values if kind == "approach" else (),
                         fovs_deg=values if kind == "zoom" else ())  # fmt: skip
     base = jl.Scene.from_validated(scene, dtype=dtype)
+    out = cli.make_output_folder(out)
+    if frames_dir is not None:  # its parents; `frame_folder` makes the folder itself
+        cli.make_output_folder(frames_dir, folder=frames_dir.parent)
     step = {"approach": jl.approach, "orbit": jl.orbit, "pan": jl.pan, "zoom": jl.zoom}[kind]
     exposure = base.exposure
 
@@ -189,9 +192,7 @@ def frames_per_call(width: int, height: int, frames: int) -> int:
 
 
 def _check_frames_dir(folder: Path) -> Path:
-    if not folder.parent.is_dir():
-        raise ValueError(f"frames folder {str(folder)!r}: {str(folder.parent)!r} does "
-                         "not exist")  # fmt: skip
+    # A missing folder (and its parents) is made once every argument is checked.
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"frames folder {str(folder)!r} exists and is not a folder")
     return folder

@@ -231,13 +231,14 @@ def run(args):
 
     import jaxlens as jl  # the public functions, looked up when the command runs
 
-    out = _io.check_output_path(args.output)
+    out = cli.output_file(args.output)  # its folder is made once the scene is checked
     if out.suffix.lower() in _io.ANIMATION_FORMATS:
         kind = out.suffix[1:].upper()
         raise ValueError(f"output {str(out)!r}: {kind} files are animations; use `jaxlens animate`")
     v = scene_dict(args)
     _io.check_render_memory(v["camera"]["width"], v["camera"]["height"])
     scene = jl.Scene.from_validated(v, dtype=pixel_dtype(args, v))
+    out = cli.make_output_folder(out)
     t = time.perf_counter()
     cli.status("rendering (compiling on first use)")
     if args.distributed:

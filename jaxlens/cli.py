@@ -17,6 +17,7 @@ import re
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from . import _io, _spinner
 
@@ -76,6 +77,52 @@ def stop_status() -> None:
     """Clear the status line before printing a result (the next `status` brings it
     back)."""
     _spinner.pause()
+
+
+def output_file(path) -> Path:
+    """Check an output file's name as `_io.check_output_path` does, except that a missing
+    folder is not an error: `make_output_folder` creates it once every argument is
+    checked, so a refused command creates no folder.
+
+    **Arguments:** `path`: the output file (str or Path).
+
+    **Returns:** `path` as a `Path`. Raises `ValueError` naming it (an unsupported
+    extension, a folder given as the file, an unwritable folder).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in _io.WRITE_FORMATS | _io.ANIMATION_FORMATS:
+        return _io.check_output_path(path)  # raises: names the extension and the valid ones
+    if not _missing(path.parent):
+        return _io.check_output_path(path)
+    return path
+
+
+def make_output_folder(path, *, folder=None) -> Path:
+    """Create the folder of an output file and its parents, as image tools do (`-o
+    out/ring.png` makes `out/`); a folder that exists is left as it is, and nothing in
+    it is touched. Call it once every argument is checked.
+
+    **Arguments:** `path`: the output file (str or Path); `folder`: the folder to
+    create, if not `path`'s (the parent of a frames folder, say).
+
+    **Returns:** `path` as a `Path`, checked by `_io.check_output_path` (writable) when
+    `folder` is not given. Raises `ValueError` naming the folder when it cannot be
+    created (a file in its place, no permission).
+    """
+    path = Path(path)
+    where = path.parent if folder is None else Path(folder)
+    if _missing(where):
+        try:
+            where.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValueError(f"output folder {str(where)!r} of {str(path)!r} cannot be created: "
+                             f"{e.strerror or e}") from None  # fmt: skip
+    return _io.check_output_path(path) if folder is None else path
+
+
+def _missing(folder: Path) -> bool:
+    """Whether nothing (no folder, no file, no link) is at `folder`."""
+    return not folder.exists() and not folder.is_symlink()
 
 
 def enable_x64():
