@@ -465,7 +465,7 @@ def test_mp4_bad_input(tmp_path):
 def test_mp4_without_pyav_names_the_extra(tmp_path, monkeypatch):
     # (`jaxlens animate -o x.mp4` makes the same check before rendering: test_cli_render.)
     monkeypatch.setitem(sys.modules, "av", None)  # `import av` raises ImportError
-    with pytest.raises(ImportError, match=r"jaxlens\[video\]") as e:
+    with pytest.raises(ImportError, match=r"jaxlens-bh\[video\]") as e:
         write_video(tmp_path / "a.mp4", _smooth_frames(2, 8, 8))
     assert isinstance(e.value, ValueError) and e.value.name == "av"
     assert os.listdir(tmp_path) == []
