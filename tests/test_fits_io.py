@@ -376,5 +376,5 @@ def test_missing_astropy_names_the_extra(tmp_path, monkeypatch):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_astropy)
-    with pytest.raises(MissingExtraError, match=r"jaxlens\[fits\]"):
+    with pytest.raises(MissingExtraError, match=r"jaxlens-bh\[fits\]"):
         read_fits(path)
