@@ -31,15 +31,23 @@ test: install-test chromium
 	$(BIN)/python -m pytest -n 2 --dist loadfile --nbmake -m "not benchmark" tests notebooks
 
 # A Chromium for the browser test (tests/test_browser.py): one on the PATH, else
-# Playwright's own build, else the system's through apt-get where this runs as root.
-# Where none can be installed the test is skipped and says why.
+# Playwright's own build (downloaded into ~/.cache/ms-playwright), else, only where this
+# runs as root, Debian's package through apt-get (which may first update apt's lists).
+# Each step says what it does. JAXLENS_NO_BROWSER=1 installs nothing and skips the test;
+# where none can be installed the test is skipped and says why.
 chromium: install-test
-	@command -v chromium >/dev/null 2>&1 || $(BIN)/python -m playwright install chromium \
-	  >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
-	  { export DEBIAN_FRONTEND=noninteractive; apt-get install -y -q chromium || \
-	  { apt-get update -q && \
-	  apt-get install -y -q chromium; }; } >/dev/null 2>&1; } || \
-	  echo "no Chromium could be installed: the browser test will be skipped"
+	@if [ -n "$$JAXLENS_NO_BROWSER" ]; then \
+	  echo "JAXLENS_NO_BROWSER is set: no Chromium installed, the browser test is skipped"; \
+	elif command -v chromium >/dev/null 2>&1; then :; \
+	else \
+	  echo "the browser test needs Chromium: installing Playwright's build (JAXLENS_NO_BROWSER=1 skips it)"; \
+	  $(BIN)/python -m playwright install chromium >/dev/null 2>&1 || \
+	  { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	    echo "Playwright's build failed: installing Debian's chromium with apt-get (as root)" && \
+	    { export DEBIAN_FRONTEND=noninteractive; apt-get install -y -q chromium || \
+	      { apt-get update -q && apt-get install -y -q chromium; }; } >/dev/null 2>&1; } || \
+	  echo "no Chromium could be installed: the browser test will be skipped"; \
+	fi
 
 # The tests marked `benchmark` (each ~40 s or more; their cases are also benchmarked).
 test-slow: install-test
@@ -60,6 +68,7 @@ docs: install-test
 	NO_MKDOCS_2_WARNING=1 JAXLENS_DOCS_EXECUTE=true $(BIN)/python -m mkdocs build --strict
 
 lint: install-test
+	$(BIN)/python -m pip install --quiet ruff
 	$(BIN)/ruff check jaxlens tests benchmarks
 	$(BIN)/ruff format --check jaxlens tests benchmarks
 

@@ -5,7 +5,7 @@ moves, and say "rendering..." while a new sky compiles.
 
 Chromium is Playwright's own build (`python -m playwright install chromium`) or the
 system's (`chromium` on the PATH, or `$JAXLENS_CHROMIUM`); `make test` tries to install
-one. Without it the test is skipped and says so. With `$JAXLENS_SCREENSHOTS` set to a
+one (JAXLENS_NO_BROWSER=1 skips both). Without it the test is skipped and says so. With `$JAXLENS_SCREENSHOTS` set to a
 folder, the screenshots are saved there too (docs/images/explorer*.png come from it).
 """
 
@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+if os.environ.get("JAXLENS_NO_BROWSER"):
+    pytest.skip("JAXLENS_NO_BROWSER is set: no browser is driven", allow_module_level=True)
 pytest.importorskip("ipywidgets", reason="the explorer needs ipywidgets (test extras)")
 pytest.importorskip("jupyterlab", reason="the browser test needs jupyterlab (test extras)")
 sync_api = pytest.importorskip(
