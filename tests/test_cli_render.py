@@ -4,6 +4,7 @@ line on stderr with exit code 2 and no file left behind."""
 import os
 import subprocess
 import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -279,21 +280,35 @@ def test_interrupt_leaves_no_file(tmp_path, capsys, monkeypatch):
 def test_an_interrupt_swallowed_by_a_gc_callback_is_sent_again():
     # Python ignores exceptions raised in garbage-collector callbacks (JAX has one): a
     # Ctrl-C landing there reached the hook only, and the render went on to exit 0.
-    import signal
-    import time
+    # The signal is sent again in a child process: sent to this one, it could land in
+    # another callback of this long-lived process (JAX's weak-key caches) and be printed
+    # there as an ignored KeyboardInterrupt, after the test dots.
     import types
 
+    code = textwrap.dedent(
+        """
+        import signal, sys, time
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        from jaxlens import cli
+        sys.unraisablehook = cli._redeliver  # as the command installs it
+
+        class Dropped:
+            def __del__(self):
+                raise KeyboardInterrupt  # where Python ignores it: the hook sees it
+
+        Dropped()
+        try:
+            time.sleep(10.0)  # the signal is sent again within 0.05 s
+        except KeyboardInterrupt:
+            print("interrupted")
+        """
+    )
+    run_ = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    assert run_.returncode == 0 and run_.stdout == "interrupted\n", run_.stderr[-2000:]
+    assert "Exception ignored" not in run_.stderr, run_.stderr
+
     calls = []
-    # Python's own Ctrl-C handler, whatever an earlier test in this process left (the
-    # suite once ran this after something that had replaced it: no KeyboardInterrupt).
-    before = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            cli._redeliver(types.SimpleNamespace(exc_value=KeyboardInterrupt()),
-                           hook=calls.append)  # fmt: skip
-            time.sleep(5.0)  # the signal is sent again within 0.05 s
-    finally:
-        signal.signal(signal.SIGINT, before)
     cli._redeliver(types.SimpleNamespace(exc_value=RuntimeError("x")), hook=calls.append)
     assert len(calls) == 1  # other reports go on to the previous hook
 
