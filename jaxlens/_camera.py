@@ -77,7 +77,7 @@ class Camera(eqx.Module):
     **Fields:**
     - `distance`: camera radius $1 < D \\le 10^{30}$ (units of R_S; the bound is
       `trace`'s, `MAX_DISTANCE`), also > 1 once rounded to the camera's dtype.
-    - `fov`: horizontal field of view (radians, $0 < $ fov $< \\pi$).
+    - `fov`: horizontal field of view (radians, $0 < \\mathrm{fov} < \\pi$).
     - `width`, `height`: image size in pixels (static), whole numbers from 1 to
       `MAX_SIDE` = 1,048,575.
     - `yaw`, `pitch`, `roll`: orientation of the view (radians, finite); yaw turns the

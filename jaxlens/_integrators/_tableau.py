@@ -21,7 +21,7 @@ class ButcherTableau(eqx.Module):
     - `c`: nodes, $c_i = \\sum_j a_{ij}$ (the stage's fraction of the step; kept
       for the order conditions, the orbit equation does not depend on $\\phi$).
     - `order`: order of the solution; the exponent of the step-size control is
-      $1 / $ `order`.
+      $1 / \\mathrm{order}$.
     - `b_error`: `None` for a fixed-step method, else $b - b^*$ with $b^*$ the weights
       of the embedded lower-order solution: the step's error estimate is
       $h \\sum_i (b_i - b^*_i) k_i$ and the step size adapts to it.
