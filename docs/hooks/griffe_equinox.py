@@ -1,17 +1,23 @@
-"""A griffe extension that gives each `equinox.Module` (and `typing.NamedTuple`) of
-jaxlens the `__init__` that equinox (or `NamedTuple`) writes for it, so the API page
-shows the constructor's signature.
+"""A griffe extension (mkdocs.yml: the python handler's `extensions`) for the API page.
 
-Equinox builds a dataclass `__init__` from the annotated fields at import time; griffe
-reads the source and, not knowing that `eqx.Module` is a dataclass, finds no
-`__init__` at all (its own dataclass support looks for `@dataclass`). The fields, in
-the order equinox takes them (the bases' first, a redefinition keeping its first
-place): annotated class attributes, less `ClassVar`s, `eqx.AbstractVar`s and
-`eqx.AbstractClassVar`s (which a subclass fills) and `eqx.field(init=False)`; the
-default from `= value` or `eqx.field(default=...)`. A class with an `__init__` of its
-own keeps it, and an abstract base (`Abstract*`, which cannot be built) gets none.
-A `NamedTuple`'s fields are its annotated attributes, in order. Loaded by docs/hooks/site.py.
+- Each `equinox.Module` (and `typing.NamedTuple`) of jaxlens gets the `__init__` that
+  equinox (or `NamedTuple`) writes for it, so the page shows its constructor's
+  signature. Equinox builds a dataclass `__init__` from the annotated fields at import
+  time; griffe reads the source and, not knowing that `eqx.Module` is a dataclass,
+  finds no `__init__` at all (its own dataclass support looks for `@dataclass`). The
+  fields, in the order equinox takes them (the bases' first, a redefinition keeping its
+  first place): annotated class attributes, less `ClassVar`s, `eqx.AbstractVar`s and
+  `eqx.AbstractClassVar`s (which a subclass fills) and `eqx.field(init=False)`; the
+  default from `= value` or `eqx.field(default=...)`. A class with an `__init__` of its
+  own keeps it; an abstract base (`Abstract*`, which cannot be built) gets none. A
+  `NamedTuple`'s fields are its annotated attributes, in order.
+- A module attribute bound to a class (`SceneKey = Key`) is documented as that class.
+- A module constant with no docstring takes its comment (the one on its line, else the
+  comment lines right above it or above the run of one-line constants it ends), so
+  `B_CRIT = ...  # critical impact parameter ...` reads on the page as in the source.
 """
+
+import re
 
 import griffe
 
@@ -101,6 +107,7 @@ class EquinoxInit(griffe.Extension):
 
     def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
         _class_aliases(pkg)
+        _comment_docstrings(pkg)
         for cls in _classes(pkg):
             if cls.name.startswith("Abstract") or _has_init(cls) or not _is_module(cls):
                 continue  # an abstract base is not built: no signature
@@ -161,3 +168,34 @@ def _class_aliases(obj) -> None:
             target = obj.members.get(member.value.name)
             if target is not None and not target.is_alias and target.is_class:
                 obj.set_member(name, griffe.Alias(name, target, parent=obj))
+
+
+def _comment_docstrings(obj) -> None:
+    for member in list(obj.members.values()):
+        if member.is_alias:
+            continue
+        if member.is_module:
+            _comment_docstrings(member)
+        elif member.is_attribute and member.docstring is None and member.lineno:
+            text = _comment(obj.lines, member.lineno, member.endlineno or member.lineno)
+            if text:
+                member.docstring = griffe.Docstring(text, parent=member)
+
+
+_CONSTANT = re.compile(r"^[A-Z][A-Z0-9_]* = [^#]*$")
+
+
+def _comment(lines: list[str], first: int, last: int) -> str:
+    """The comment of the statement on lines `first`..`last` (1-based): the one after
+    the code on its last line, else the comment lines right above it."""
+    code, sep, after = lines[last - 1].partition("  # ")
+    if sep and after.strip():
+        return after.strip()
+    above = []
+    i = first - 2
+    while i >= 0 and _CONSTANT.match(lines[i]):
+        i -= 1  # a run of one-line constants shares the comment above the first
+    while i >= 0 and lines[i].lstrip().startswith("#"):
+        above.insert(0, lines[i].strip().lstrip("#").strip())
+        i -= 1
+    return " ".join(above)
