@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-slow test-min chromium docs install install-test lint bench clean
+.PHONY: demo test test-slow test-min chromium docs docs-serve install install-test lint bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -66,6 +66,10 @@ test-min:
 # build/site; strict: a warning or a broken link fails the build.
 docs: install-test
 	NO_MKDOCS_2_WARNING=1 JAXLENS_DOCS_EXECUTE=true $(BIN)/python -m mkdocs build --strict
+
+# The same site served at http://127.0.0.1:8000, rebuilt as files change.
+docs-serve: install-test
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs serve
 
 lint: install-test
 	$(BIN)/python -m pip install --quiet ruff
