@@ -249,7 +249,9 @@ def run(args):
         try:
             fit = fit_scene(model, image, free=free, psf=psf, noise=args.noise, gain=gain,
                             mask=args.mask, init=init or None, transfer=args.transfer,
-                            pixels=args.pixels, source_distance=source)  # fmt: skip
+                            pixels=args.pixels, source_distance=source,
+                            progress=lambda text: cli.status(f"fitting {image}{which}: "
+                                                             f"{text}"))  # fmt: skip
         except (ValueError, OSError) as e:
             if not several:
                 raise
@@ -318,24 +320,13 @@ def _source(text, mass, dist_m):
 
 
 def _report(args, image, fit, mass, dist_m) -> str:
-    """One image's result: the readable report (`Fit.summary()` and the physical
-    scale), or one line of JSON (`Fit.to_dict()` and the same)."""
-    out = {"image": image, **fit.to_dict()}
-    lines = [f"fit of {image}", fit.summary()]
-    if fit.source_distance is not None and fit.source_distance.behind is not None:
-        # The summary and the dict hold the mass or the distance the source measured.
-        mass = dist_m = None
-    if mass is not None:
-        d_m, d_m_err = fit.distance_m(mass)
-        out.update(mass_msun=mass, distance_m=d_m, distance_m_err=d_m_err)
-        lines.append(f"{'distance':<12} = {d_m:.6g} +- {d_m_err:.2g} m (mass {mass:g} M_sun)")
-    if dist_m is not None:
-        m, m_err = fit.mass_msun(dist_m)
-        out.update(distance_m=dist_m, mass_msun=m, mass_msun_err=m_err)
-        lines.append(f"{'mass':<12} = {m:.6g} +- {m_err:.2g} M_sun (distance {dist_m:g} m)")
+    """One image's result: the readable report (the file's name, then `Fit.summary`
+    with the given mass or distance), or one line of JSON (`Fit.to_dict`, the same)."""
     if args.json:
+        out = {"image": image, **fit.to_dict(mass_msun=mass, distance_m=dist_m)}
         return json.dumps(_finite(out))
-    return "\n".join(lines) + ("\n" if len(args.images) > 1 else "")
+    text = f"fit of {image}\n{fit.summary(mass_msun=mass, distance_m=dist_m)}"
+    return text + ("\n" if len(args.images) > 1 else "")
 
 
 def _finite(d):

@@ -89,25 +89,37 @@ def _nuisance_notes(free, phys, err, psf_given: bool, clipped: bool):
     needs them so beyond 3 standard errors describes something else (seen: a ring fitted
     with a negative ring flux at D = 2.5; a ring blurred by 2 px fitted without its PSF,
     whose wider ring a camera twice as far explains, and its sharp relativistic ring a
-    flux of -4). Within them (-0.4 +- 0.24 on a point-sampled render, whose thin rings
-    alias) the value is zero within its error: no note."""
-    notes = []
+    flux of -4): a note, which flags the fit. Within them (-0.4 +- 0.24 on a
+    point-sampled render, whose thin rings alias) the value is zero within its error:
+    an explanation, for the fit's caveat (the fitted value is not clipped at 0, which
+    would bias the others and their errors).
+
+    **Returns:** `(notes, explained)`, lists of texts."""
+    notes, explained = [], []
     for i, n in enumerate(free):
         base = split_name(n)[0]
-        if base in ("brightness", "ring_flux") and phys[n] < 0.0 and not phys[n] >= -3.0 * err[i]:
-            what = "a star's brightness" if base == "brightness" else "the rings' flux"
-            note = (f"{n} = {phys[n]:.3g} +- {err[i]:.2g} is negative, which {what} cannot "
-                    "be: the model does not describe the image")  # fmt: skip
-            if base == "ring_flux" and not clipped:
-                # The thin rings are the sharpest feature: a negative flux takes light
-                # from where a blur spreads it (or, in a saturated image, from a ring
-                # whose peak was cut: the causes of the residual test say so).
-                what = "a wider PSF" if psf_given else "a PSF"
-                note += (f"; its sharpest features are sharper than the image's: give {what} "
-                         "(psf=, --psf-sigma-px) or fit its width (free psf_sigma, "
-                         "--fit-psf)")  # fmt: skip
-            notes.append(note)
-    return notes
+        if base not in ("brightness", "ring_flux") or not phys[n] < 0.0:
+            continue
+        what = "a star's brightness" if base == "brightness" else "the rings' flux"
+        if phys[n] >= -3.0 * err[i]:
+            seen = "the star's light" if base == "brightness" else "the thin relativistic rings"
+            explained.append(f"{n} = {phys[n]:.3g} +- {err[i]:.2g} is negative, which {what} "
+                             f"cannot be, but within 3 standard errors of zero: the image "
+                             f"does not show {seen} above its noise (the estimate is not "
+                             "clipped at 0, which would bias the other values)")  # fmt: skip
+            continue
+        note = (f"{n} = {phys[n]:.3g} +- {err[i]:.2g} is negative, which {what} cannot "
+                "be: the model does not describe the image")  # fmt: skip
+        if base == "ring_flux" and not clipped:
+            # The thin rings are the sharpest feature: a negative flux takes light
+            # from where a blur spreads it (or, in a saturated image, from a ring
+            # whose peak was cut: the causes of the residual test say so).
+            what = "a wider PSF" if psf_given else "a PSF"
+            note += (f"; its sharpest features are sharper than the image's: give {what} "
+                     "(psf=, --psf-sigma-px) or fit its width (free psf_sigma, "
+                     "--fit-psf)")  # fmt: skip
+        notes.append(note)
+    return notes, explained
 
 
 def blur_excess(model_img, resid_img, block: int) -> float:
@@ -266,7 +278,10 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
     more, degenerate, vif_ring, caveat = _separation_notes(free, sol.phys, err, corr, cond,
                                                            seen.shadow_seen)  # fmt: skip
     top = clipping_bounds(seen.grey)[1]
-    notes += more + _nuisance_notes(free, sol.phys, err, obs.psf is not None, math.isfinite(top))
+    flux_notes, explained = _nuisance_notes(free, sol.phys, err, obs.psf is not None,
+                                            math.isfinite(top))  # fmt: skip
+    notes += more + flux_notes
+    caveat = "; ".join(c for c in (caveat, *explained) if c)
     model_img = pix.paint(sol.model)
     resid_img = pix.paint(np.where(pix.count > 0, pix.data - sol.model, np.nan))
     goodness = blur_v = blur_z = math.nan
@@ -307,5 +322,5 @@ def diagnose(scene, obs, seen, setup, noise: AbstractNoise, sol: Solution, value
         seconds=time.perf_counter() - t_start, transfer=obs.transfer,
         transfer_reason=obs.transfer_reason, goodness=float(goodness), noise_trend=trend,
         pixels=obs.pixels, pixels_reason=obs.pixels_reason, blur_variance=float(blur_v),
-        blur_z=float(blur_z), caveat=caveat,
+        blur_z=float(blur_z), caveat=caveat, noise_seen=bool(noise_seen),
     )  # fmt: skip

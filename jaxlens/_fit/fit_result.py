@@ -9,7 +9,7 @@ import numpy as np
 from .noise import GOODNESS_SIGMAS
 from .params import is_angle, parameter
 from .source import SourceDistance
-from .units import mass_from_distance, schwarzschild_radius_m
+from .units import mass_from_distance, schwarzschild_radius_m, to_metres, to_solar_masses
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,7 +45,9 @@ class Fit:
       errors are a measurement. Anything else is a flagged result, not one to report.
     - `caveat`: what a valid measurement rests on where that is worth saying ("" when
       nothing): a D that only a faint feature fixes (the relativistic ring seen at 5
-      to 10 standard errors), whose error allows for it.
+      to 10 standard errors), whose error allows for it; a star's brightness or the
+      rings' flux fitted negative but within 3 standard errors of zero (beyond them
+      the fit is flagged in `message`).
     - `variance_inflation`: the largest $1/(1 - R^2)$ over D, FOV (and sigma), $R$
       the multiple correlation of one with the other free parameters (NaN when D or
       FOV is held); above 1e9 the curvature is singular.
@@ -81,7 +83,12 @@ class Fit:
       of a file's values makes it large; `fit` uses it to choose an untagged file's.
     - `residual_noise` (property): the residuals' standard deviation per compared pixel
       (data units), $\\sqrt{\\chi^2/\\mathrm{dof}}$ times `noise_sigma`; NaN under Poisson
-      noise, whose level varies with the model.
+      noise, whose level varies with the model. Where no pixel noise was found
+      (`noise_seen` False) it is the misfit, not a noise, and `noise_sigma` the level
+      of the image's fine structure, not its noise.
+    - `noise_seen`: the noise level is a noise's: given, or estimated from an image
+      that shows white pixel noise (False for a noiseless or smoothed image: its errors
+      then measure the misfit, and `message` says so).
 
     Attribute shortcuts: `fit.<name>` and `fit.<name>_err` for every parameter in
     `values` (the error of one held fixed is 0), and `fit.<name>_deg`,
@@ -122,6 +129,7 @@ class Fit:
     blur_z: float = math.nan
     caveat: str = ""
     source_distance: SourceDistance | None = None
+    noise_seen: bool = True
 
     @property
     def fits_noise(self) -> bool:
@@ -226,9 +234,34 @@ class Fit:
         m = float(mass_from_distance(self.values["distance"], distance_m))
         return m, m * self.errors.get("distance", 0.0) / self.values["distance"]
 
-    def to_dict(self) -> dict:
+    def _given(self, mass_msun, distance_m) -> tuple[dict, list]:
+        """The camera distance in metres for a given mass, the mass for a given camera
+        distance: for `to_dict` and `summary` (nothing where the fit's `SourceDistance`
+        measured one already: it is in both)."""
+        sd = self.source_distance
+        if sd is not None and sd.behind is not None:
+            return {}, []
+        out, lines = {}, []
+        if mass_msun is not None:
+            mass_msun = to_solar_masses(mass_msun, name="mass_msun")
+            d_m, d_m_err = self.distance_m(mass_msun)
+            out.update(mass_msun=mass_msun, distance_m=d_m, distance_m_err=d_m_err)
+            lines.append(f"{'distance':<12} = {d_m:.6g} +- {d_m_err:.2g} m "
+                         f"(mass {mass_msun:g} M_sun)")  # fmt: skip
+        if distance_m is not None:
+            distance_m = to_metres(distance_m, name="distance_m")
+            m, m_err = self.mass_msun(distance_m)
+            out.update(distance_m=distance_m, mass_msun=m, mass_msun_err=m_err)
+            lines.append(f"{'mass':<12} = {m:.6g} +- {m_err:.2g} M_sun "
+                         f"(distance {distance_m:g} m)")  # fmt: skip
+        return out, lines
+
+    def to_dict(self, *, mass_msun: float | None = None, distance_m: float | None = None) -> dict:
         """Plain values for JSON: every parameter and its `_err` (angles also in degrees
-        as `<name>_deg`), and the verdict."""
+        as `<name>_deg`), and the verdict; with `mass_msun` (solar masses, or an astropy
+        mass Quantity) also `distance_m` and its error (metres), with `distance_m` (the
+        camera's distance: metres, or an astropy length Quantity) also `mass_msun` and
+        its error, as `jaxlens fit --json` writes them."""
         out = {}
         for name, v in self.values.items():
             e = self.errors.get(name, 0.0)
@@ -246,15 +279,22 @@ class Fit:
             transfer=self.transfer, transfer_reason=self.transfer_reason,
             goodness=self.goodness, noise_trend=self.noise_trend, pixels=self.pixels,
             pixels_reason=self.pixels_reason, blur_variance=self.blur_variance,
-            blur_z=self.blur_z, caveat=self.caveat,
+            blur_z=self.blur_z, caveat=self.caveat, noise_seen=self.noise_seen,
         )  # fmt: skip
         out.update(_scale_dict(self))
+        out.update(self._given(mass_msun, distance_m)[0])
         return out
 
-    def summary(self) -> str:
+    def summary(self, *, mass_msun: float | None = None, distance_m: float | None = None) -> str:
         """A table of the parameters with their standard errors, the verdict, how a
-        file's values were read (`transfer`, `transfer_reason`) and the message; the
-        text report of `jaxlens fit`."""
+        file's values were read (`transfer`, `transfer_reason`) and the message: the
+        text report of `jaxlens fit` (which adds the file's name above it).
+
+        **Arguments:** `mass_msun`: the hole's mass (solar masses, or an astropy mass
+        Quantity), adding the camera distance in metres; `distance_m`: the camera's
+        distance (metres, or an astropy length Quantity), adding the mass
+        (`--mass-msun`, `--distance-m`; ignored where the fit's `SourceDistance`
+        measured either)."""
         lines = []
         for name, v in self.values.items():
             unit = parameter(name).unit
@@ -274,9 +314,15 @@ class Fit:
         if math.isfinite(self.goodness):
             sep = ", " if noise else ""
             noise += f"{sep}{self.goodness:+.2g} standard deviations from the noise"
-        noise = f" ({noise})" if noise else ""
+        noise = f"chi2/dof {self.chi2_dof:.3g}" + (f" ({noise})" if noise else "")
+        if not self.noise_seen:
+            # No noise level to print: chi2/dof and the residuals' scatter measure the
+            # misfit (`message` says so).
+            misfit = self.residual_noise if self.noise == "gaussian" else math.nan
+            noise = "no pixel noise found" + (f", misfit {misfit:.3g} per pixel"
+                                              if math.isfinite(misfit) else "")  # fmt: skip
         lines.append(
-            f"{verdict}; chi2/dof {self.chi2_dof:.3g}{noise}; {self.n_pixels} pixels (bins "
+            f"{verdict}; {noise}; {self.n_pixels} pixels (bins "
             f"of {self.block}), k = {self.supersample}; {self.num_steps} steps; "
             f"{self.seconds:.1f} s"
         )
@@ -287,6 +333,7 @@ class Fit:
         if self.pixels != "area":
             lines.append(f"pixels       = {self.pixels} ({self.pixels_reason})")
         lines += _scale_lines(self)
+        lines += self._given(mass_msun, distance_m)[1]
         if self.message:
             lines.append(self.message)
         if self.caveat:

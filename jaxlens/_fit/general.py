@@ -23,6 +23,7 @@ from .noise import white_noise_found
 from .objective import loss, renoise_placeholders, solve, solve_passes
 from .observation import Observation, observe
 from .params import apply, in_scene, parameter, split_name, star_of
+from .progress import Progress, progress_of
 from .source import SourceDistance
 
 DEFAULT_FREE = (
@@ -57,6 +58,7 @@ def fit(
     atol: float | None = None,
     max_steps: int = 100,
     source_distance: SourceDistance | None = None,
+    progress=None,
 ) -> Fit:
     """Fit the parameters of a scene to an observed image.
 
@@ -119,6 +121,12 @@ def fit(
       beyond the camera's radius or inside it); a fit that ends with the sphere inside
       the photon sphere ($R \\le 1.5$, which that map does not describe) is flagged in
       `message`.
+    - `progress`: lines on stderr saying what the fit does (`fit: solving, pass 1: 4
+      steps, chi2 6208 | 17.8 s`): the start's search, each solver pass with its
+      steps and chi^2, the checks. `None` (default): on where stderr is a terminal or
+      in a notebook, off elsewhere (a test run, a pipe, a batch job's log); `True`,
+      `False`; or a callable that takes each stage's text instead of the line
+      (`jaxlens fit` shows it on its status line).
 
     **Returns:** a `Fit`; its `message` names every check that failed, among them
     residuals beyond the noise model (with the likely cause: a missing PSF, clipped
@@ -128,6 +136,7 @@ def fit(
     host_driver("fit", "differentiate the model (jaxlens.ring_image, "
                 "jaxlens.render_array) instead", scene, image, init)  # fmt: skip
     t_start = time.perf_counter()
+    report = progress_of(progress)
     free = _checked_free(scene, free, psf)
     source_distance = _checked_source(scene, source_distance)
     obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain,
@@ -137,17 +146,27 @@ def fit(
                     atol=1e-6 if atol is None else atol, max_steps=max_steps,
                     source=source_distance)  # fmt: skip
     if obs.transfer_tagged:
-        return _fit_observed(scene, obs, opts, t_start)
+        return _done(_fit_observed(scene, obs, opts, t_start, report), report)
     # A file that does not say how its values are encoded: both decodings are fitted.
     fits, errors = [], []
-    for t in ("srgb", "linear"):
+    for t, shown in (("srgb", "sRGB"), ("linear", "linear")):
+        report.prefix = f"{shown} decoding: "
         try:
-            fits.append(_fit_observed(scene, obs.decoded(t), opts, t_start))
+            fits.append(_fit_observed(scene, obs.decoded(t), opts, t_start, report))
         except ValueError as e:  # e.g. no ring stands out under one decoding
+            report(f"no fit: {e}")
             errors.append(e)
+    report.prefix = ""
     if not fits:
         raise errors[0]
-    return _decoding_chosen(fits, time.perf_counter() - t_start)
+    return _done(_decoding_chosen(fits, time.perf_counter() - t_start), report)
+
+
+def _done(f: Fit, report: Progress) -> Fit:
+    """`f`, its verdict reported."""
+    verdict = "valid" if f.valid else "converged, FLAGGED" if f.converged else "NOT converged"
+    report(f"done: {verdict}, {f.num_steps} steps (summary(): the values and checks)")
+    return f
 
 
 def _checked_free(scene, free, psf) -> tuple:
@@ -191,18 +210,22 @@ def _options(obs: Observation, free: tuple, init, **settings) -> st.Options:
     return st.Options(free, init, **settings)
 
 
-def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> Fit:
+def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float,
+                  report: Progress) -> Fit:  # fmt: skip
     """One fit of an observation: look, start, solve, diagnose."""
     free, w = opts.free, obs.shape[1]
     with jax.enable_x64(True):
+        report(f"looking for a ring or arcs in the {w} x {obs.shape[0]} image")
         seen = st.look(obs)
         noise = obs.noise.estimated(obs.data, obs.valid, profile=seen.prof, level=seen.level)
         # An estimated noise must be the image's own: a noiseless (rendered, averaged)
         # image gives errors that measure the misfit, not a measurement's scatter.
         noise_seen = not noise.checked_for_white_noise or white_noise_found(seen.grey)[0]
         scan_d, scan_source = st.scans(seen, opts)
+        report(f"found {'arcs' if seen.arc_like else 'a ring'}: tracing the model and the solver")
         early = _compile_early(obs, seen, noise, scene, opts, scan_d or scan_source)
         try:
+            report("start: the starting values (compiling on first use)")
             scale = max(seen.prof.peak + seen.prof.floor, 1e-12)
             values = st.starting_values(seen, obs, scene, opts, scale, scan_d)
             if seen.found and {"yaw", "pitch"} & set(free):
@@ -227,10 +250,15 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float) -> 
         later = [_solve_call(s, settings)]
         if s.data.noise.reestimated:
             later.append(renoise_placeholders(s.data, len(s.theta0)))
+        report(f"start: {len(free)} free parameters, {s.data.data.size} bins compared "
+               "(compiling the model and its Jacobian on first use)")  # fmt: skip
         with ahead(*later), early:
-            theta0 = st.refine(s.theta0, seen, obs, s, opts, values, scan_d, scan_source)
+            theta0 = st.refine(s.theta0, seen, obs, s, opts, values, scan_d, scan_source,
+                               report)  # fmt: skip
         theta, r, jac, model, result, steps, noise = solve_passes(theta0, s.data, s.prob, free,
+                                                                  report=report,
                                                                   **settings)  # fmt: skip
+        report("checking the residuals")
         phys = {n: float(parameter(n).transform.forward(theta[i])) for i, n in enumerate(free)}
         fitted = apply(s.scene, {n: v for n, v in phys.items() if in_scene(n)})
     sol = Solution(theta, phys, r, jac, result, steps, model)

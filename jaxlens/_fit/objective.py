@@ -250,11 +250,13 @@ def renoise_placeholders(d: Data, n_theta: int):
     return (renoised, model, d, d.noise, r, jac, moved)
 
 
-def solve_passes(theta0, d: Data, prob: Problem, free, *, rtol, atol, max_steps):
+def solve_passes(theta0, d: Data, prob: Problem, free, *, rtol, atol, max_steps,
+                 report=None):  # fmt: skip
     """Levenberg-Marquardt from `theta0`; where the noise model is `reestimated`, its
     level is re-estimated from the first pass's residuals well inside the clipping
     range and a second pass runs only if the new noise moves the optimum
-    (`RENOISED_CHI2`).
+    (`RENOISED_CHI2`). Each pass told to `report` (a `Progress`) where given: its
+    steps and the chi^2 of its last point.
 
     **Returns:** `(theta, r, jac, model, result, steps, noise)`: the residuals at
     `theta` to first order from the point the solve evaluated last (its Jacobian
@@ -262,8 +264,13 @@ def solve_passes(theta0, d: Data, prob: Problem, free, *, rtol, atol, max_steps)
     settings = (to_device(rtol), to_device(atol), int(max_steps))
     passes, steps = 2 if d.noise.reestimated else 1, 0
     for i in range(passes):
+        if report is not None:
+            report(f"solving, pass {i + 1} (Levenberg-Marquardt, at most {max_steps} steps)")
         theta, r, jac, model, result, taken, moved = solve(to_device(theta0), d, prob, *settings)
         steps += int(taken)
+        if report is not None:
+            chi2 = float(np.sum(np.square(np.asarray(r))))
+            report(f"solving, pass {i + 1}: {int(taken)} steps, chi2 {chi2:.4g}")
         if i + 1 < passes:
             new = _residual_noise(np.asarray(model), d)
             if new is None:

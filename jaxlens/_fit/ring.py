@@ -32,6 +32,7 @@ def fit_ring(
     atol: float | None = None,
     max_steps: int = 100,
     source_distance: SourceDistance | None = None,
+    progress=None,
 ) -> Fit:
     """Fit the camera distance and field of view to an image of an Einstein ring.
 
@@ -74,6 +75,9 @@ def fit_ring(
       distance behind the hole (its radius in R_S, or its distance behind the hole
       with the observer's distance or the mass: `Fit.mass` or
       `Fit.observer_distance` then measured); None: at infinity (`fit`'s).
+    - `progress`: lines on stderr saying what the fit does; `None` (default): on where
+      stderr is a terminal or in a notebook; `True`, `False` or a callable taking each
+      line (`fit`'s).
 
     **Returns:** the `Fit` of `fit`, with `degenerate` also set when it did not
     converge (D and FOV are then not fixed). Raises `ValueError` for an unreadable or
@@ -95,6 +99,7 @@ def fit_ring(
     free += ("brightness", "floor", "ring_flux")
     f = fit(scene, obs, free=free, init=init, supersample=supersample, block=block,
             max_pixels=max_pixels, knots=knots, rtol=rtol, atol=atol,
-            max_steps=max_steps, source_distance=source_distance)  # fmt: skip
+            max_steps=max_steps, source_distance=source_distance,
+            progress=progress)  # fmt: skip
     # A ring fit that did not converge fixes neither D nor FOV.
     return dataclasses.replace(f, degenerate=f.degenerate or not f.converged)

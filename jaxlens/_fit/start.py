@@ -369,14 +369,22 @@ def _arcs_camera(arcs, width: int, sigma: float, source=None):
     return {"distance": float(d[i]), "fov": float(fov[i])}
 
 
-def _best(theta0, cands, s: Setup):
-    """The candidate (internal parameters, one a row) of lowest loss, else `theta0`."""
+def _best(theta0, cands, s: Setup, report=None, what: str = "candidates"):
+    """The candidate (internal parameters, one a row) of lowest loss, else `theta0`;
+    `report` (a `Progress`) told the search and its best loss."""
+    if report is not None:
+        report(f"start: searching {len(cands)} {what}")
     losses = [float(loss(to_device(c), s.data, s.prob)) for c in cands]
     losses = np.where(np.isfinite(losses), losses, np.inf)
-    return cands[int(np.argmin(losses))] if np.isfinite(losses).any() else theta0
+    if not np.isfinite(losses).any():
+        return theta0
+    if report is not None:
+        report(f"start: best of {len(cands)} {what}, loss (chi2) {np.min(losses):.4g}")
+    return cands[int(np.argmin(losses))]
 
 
-def _distance_scan(theta0, seen: Look, obs: Observation, s: Setup, opts: Options):
+def _distance_scan(theta0, seen: Look, obs: Observation, s: Setup, opts: Options,
+                   report=None):  # fmt: skip
     """`theta0` with D, FOV, the source (and sigma, when free) set to the candidate
     along the ring relation whose full-model loss is lowest: the source offset at each
     D from the arcs' radii, along their azimuth."""
@@ -393,7 +401,9 @@ def _distance_scan(theta0, seen: Look, obs: Observation, s: Setup, opts: Options
             if n in free:
                 cand[free.index(n)] = parameter(n).transform.inverse(float(v[j]))
         cands.append(cand)
-    return _best(theta0, np.asarray(cands), s) if cands else theta0
+    if not cands:
+        return theta0
+    return _best(theta0, np.asarray(cands), s, report, "distances along the ring relation")
 
 
 def _source_azimuth(seen: Look, obs: Observation, floor: float) -> float:
@@ -413,10 +423,11 @@ def _source_azimuth(seen: Look, obs: Observation, floor: float) -> float:
 
 
 def refine(theta0, seen: Look, obs: Observation, s: Setup, opts: Options, values: dict,
-           scan_d: bool, scan_source: bool):  # fmt: skip
+           scan_d: bool, scan_source: bool, report=None):  # fmt: skip
     """The internal starting values after the scans of the compiled loss: the hole's
     image (yaw, pitch) from the arcs, the distance along the ring relation (`scan_d`)
-    and the source's offset along the arcs' azimuth (`scan_source`)."""
+    and the source's offset along the arcs' azimuth (`scan_source`); each scan told
+    to `report` (a `Progress`) where given."""
     free, arcs = opts.free, seen.arcs
     theta0 = np.array(theta0, float)
     f_px = focal(values["fov"], obs.shape[1])
@@ -424,7 +435,7 @@ def refine(theta0, seen: Look, obs: Observation, s: Setup, opts: Options, values
         if name in free and name not in opts.init and seen.found:
             theta0[free.index(name)] = math.atan(-c / f_px)  # the view turned away
     if scan_d:
-        theta0 = _distance_scan(theta0, seen, obs, s, opts)
+        theta0 = _distance_scan(theta0, seen, obs, s, opts, report)
         scanned = ("distance", "fov", "sigma")
         values = values | {n: float(parameter(n).transform.forward(theta0[i]))
                            for i, n in enumerate(free) if n in scanned}  # fmt: skip
@@ -442,5 +453,5 @@ def refine(theta0, seen: Look, obs: Observation, s: Setup, opts: Options, values
         cands = np.repeat(theta0[None], len(offsets), axis=0)
         cands[:, free.index("source_lon")] = np.asarray(offsets) * math.cos(psi)
         cands[:, free.index("source_lat")] = np.asarray(offsets) * math.sin(psi)
-        theta0 = _best(theta0, cands, s)
+        theta0 = _best(theta0, cands, s, report, "source offsets along the arcs' azimuth")
     return theta0
