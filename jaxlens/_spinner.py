@@ -7,6 +7,7 @@ Commands say what they do with `status("...")`; a thread redraws the line. Nothi
 touches JAX: the line runs while JAX loads and compiles.
 """
 
+import os
 import sys
 import threading
 import time
@@ -20,6 +21,24 @@ def status(text: str) -> None:
     `pause`, the line comes back once this has lasted a second)."""
     if _current is not None:
         _current.resume(text)
+
+
+def _columns(stream) -> int:
+    """The width of the terminal `stream` writes to (80 where it does not say)."""
+    try:
+        return os.get_terminal_size(stream.fileno()).columns or 80
+    except (AttributeError, OSError, ValueError):
+        return 80
+
+
+def _line(head: str, tail: str, columns: int) -> str:
+    """`head` and `tail` on one line of at most `columns - 1` characters, `head` cut
+    (ending in "...") where it is longer: a line that wrapped would leave a row behind
+    at every redraw, as the carriage return goes back to the start of the last one."""
+    room = columns - 1 - len(tail)
+    if len(head) > room:
+        head = head[: max(room - 3, 0)] + "..."
+    return (head + tail)[: max(columns - 1, 1)]
 
 
 def _bar_on_screen() -> bool:
@@ -77,8 +96,9 @@ class Spinner:
                 now = time.monotonic()
                 due = not self._paused and now - self._since >= self.delay
                 if due and not self._stop.is_set() and not _bar_on_screen():
-                    line = f"{self.command}: {self.text} {_FRAMES[i % 4]}"
-                    self._write(f"\r{line} {now - self._since:.0f} s\x1b[K")
+                    tail = f" {_FRAMES[i % 4]} {now - self._since:.0f} s"
+                    line = _line(f"{self.command}: {self.text}", tail, _columns(self.stream))
+                    self._write(f"\r{line}\x1b[K")
                     self._shown = True
                 elif self._shown:  # a progress bar took over: leave it the line
                     self._write("\r\x1b[K")

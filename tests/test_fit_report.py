@@ -7,9 +7,11 @@ as `jaxlens fit` fits it, so that they share the compiled programs of that test'
 fits (through the suite's compilation cache) and of each other: the first fit
 compiles them, most of this file's time where it runs alone."""
 
+import io
 import math
 import re
 import sys
+import time
 import types
 
 import jax
@@ -186,3 +188,24 @@ def test_a_fit_of_dark_rings_flags_or_explains_its_negative_flux(tmp_path, ring_
         assert "ring_flux" not in fit.message
         assert "ring_flux" in fit.caveat and "within 3 standard errors of zero" in fit.caveat
         assert f"caveat: {fit.caveat}" in text
+
+
+def test_the_status_line_keeps_to_one_row_of_the_terminal():
+    # `jaxlens fit`'s stages on its status line: a line longer than the terminal wraps,
+    # and every redraw (a carriage return) then left a row behind. Cut to 79 columns
+    # (80 where the stream does not say), the time kept.
+    from jaxlens import _spinner
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    stream = Terminal()
+    long = "fitting ring.png: start: 6 free parameters, 6912 bins compared (compiling " * 2
+    with _spinner.Spinner("jaxlens fit", stream=stream, delay=0.0, interval=0.01):
+        _spinner.status(long)
+        time.sleep(0.3)
+    rows = [r.replace("\x1b[K", "") for r in stream.getvalue().split("\r")]
+    shown = [r for r in rows if r.startswith("jaxlens fit: fitting ring.png: start")]
+    assert shown and all(len(r) <= 79 for r in rows), rows
+    assert all(re.search(r"\.\.\. [|/\\-] \d+ s$", r) for r in shown), shown
