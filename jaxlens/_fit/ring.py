@@ -77,7 +77,7 @@ def fit_ring(
       `Fit.observer_distance` then measured); None: at infinity (`fit`'s).
     - `progress`: lines on stderr saying what the fit does; `None` (default): on where
       stderr is a terminal or in a notebook; `True`, `False` or a callable taking each
-      line (`fit`'s).
+      stage's text (`fit`'s).
 
     **Returns:** the `Fit` of `fit`, with `degenerate` also set when it did not
     converge (D and FOV are then not fixed). Raises `ValueError` for an unreadable or
