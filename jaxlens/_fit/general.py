@@ -215,7 +215,8 @@ def _fit_observed(scene, obs: Observation, opts: st.Options, t_start: float,
     """One fit of an observation: look, start, solve, diagnose."""
     free, w = opts.free, obs.shape[1]
     with jax.enable_x64(True):
-        report(f"looking for a ring or arcs in the {w} x {obs.shape[0]} image")
+        report(f"looking for a ring or arcs in the {w} x {obs.shape[0]} image (compiling "
+               "on first use)")  # fmt: skip
         seen = st.look(obs)
         noise = obs.noise.estimated(obs.data, obs.valid, profile=seen.prof, level=seen.level)
         # An estimated noise must be the image's own: a noiseless (rendered, averaged)
