@@ -182,6 +182,7 @@ _MODULES = {
         "sky_from_table",
         "to_rgb",
     ),
+    "_units": ("schwarzschild_radii",),
     "_weak": ("weak_field_escape_angle",),
     "_explorer": ("Explorer",),  # needs ipywidgets (the `notebooks` extra)
 }

@@ -179,6 +179,7 @@ from ._trace import (
     Table as Table,
     trace as trace,
 )
+from ._units import schwarzschild_radii as schwarzschild_radii
 from ._weak import weak_field_escape_angle as weak_field_escape_angle
 
 __version__: str
@@ -304,6 +305,7 @@ __all__ = [
     "rotation_matrix",
     "scene_table_keys",
     "scene_table_types",
+    "schwarzschild_radii",
     "schwarzschild_radius_m",
     "shadow_angle",
     "shard_map_rays",

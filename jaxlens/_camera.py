@@ -25,6 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._fastmath import arctan2, sin_cos
 from ._messages import shown
 from ._ray_inputs import check_distance, check_dtype, check_real
+from ._units import angle, length
 from ._util import as_float as _float, concrete as _concrete, is_zero as _is_zero
 
 
@@ -34,8 +35,11 @@ def rotation_matrix(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> Float[
     It maps $+z$ to the direction at longitude yaw, latitude pitch (the convention of
     `direction_from_angles`), and turns $+x$ toward $+y$ by roll first.
 
+    **Arguments:** `yaw`, `pitch`, `roll`: radians, or astropy angle Quantities.
+
     **Returns:** a `(3, 3)` array in the dtype of the angles.
     """
+    yaw, pitch, roll = angle(yaw, "yaw"), angle(pitch, "pitch"), angle(roll, "roll")
     yaw, pitch, roll = jnp.broadcast_arrays(
         *(jnp.asarray(a, jnp.result_type(float, yaw, pitch, roll)) for a in (yaw, pitch, roll))
     )
@@ -76,8 +80,11 @@ class Camera(eqx.Module):
 
     **Fields:**
     - `distance`: camera radius $1 < D \\le 10^{30}$ (units of R_S; the bound is
-      `trace`'s, `MAX_DISTANCE`), also > 1 once rounded to the camera's dtype.
-    - `fov`: horizontal field of view (radians, $0 < \\mathrm{fov} < \\pi$).
+      `trace`'s, `MAX_DISTANCE`), also > 1 once rounded to the camera's dtype. A
+      dimensionless astropy Quantity is read as R_S; a length in metres, km, ... is
+      refused (R_S depends on the mass: `jaxlens.schwarzschild_radii` converts it).
+    - `fov`: horizontal field of view (radians, $0 < \\mathrm{fov} < \\pi$). Every angle
+      field also takes an astropy angle Quantity (`2 * u.deg`), converted to radians.
     - `width`, `height`: image size in pixels (static), whole numbers from 1 to
       `MAX_SIDE` = 1,048,575.
     - `yaw`, `pitch`, `roll`: orientation of the view (radians, finite); yaw turns the
@@ -141,8 +148,8 @@ class Camera(eqx.Module):
         angles = {"fov": fov, "yaw": yaw, "pitch": pitch, "roll": roll,
                   "azimuth": azimuth, "elevation": elevation}  # fmt: skip
         for name, value in angles.items():
-            angles[name] = check_real(name, value)
-        distance = check_real("distance", distance)
+            angles[name] = check_real(name, angle(value, name))
+        distance = check_real("distance", length(distance, "distance"))
         fov, yaw, pitch, roll, azimuth, elevation = angles.values()
         dtype = check_dtype(jnp.result_type(float, distance, fov) if dtype is None else dtype)
         for name, value in angles.items():  # before the cast, which would give inf
@@ -351,6 +358,7 @@ def _static(c: Camera) -> tuple:
 
 
 def _sweep(camera: Camera, name: str, values) -> Camera:
+    values = length(values, name) if name == "distance" else angle(values, name)
     known = _concrete(check_real(name, values))
     if known is not None:  # before the cast: 1e300 is inf in float32
         if name == "distance":
@@ -373,23 +381,25 @@ def _sweep(camera: Camera, name: str, values) -> Camera:
 
 
 def approach(camera: Camera, distances) -> Camera:
-    """A batch of `camera` at each of `distances` (units of R_S): a fall toward the
-    hole, e.g. `np.geomspace(1e5, 3, 48)`."""
+    """A batch of `camera` at each of `distances` (units of R_S, or a dimensionless
+    astropy Quantity): a fall toward the hole, e.g. `np.geomspace(1e5, 3, 48)`."""
     return _sweep(camera, "distance", distances)
 
 
 def orbit(camera: Camera, azimuths) -> Camera:
-    """A batch of `camera` at each of the positions `azimuths` (radians) around the
+    """A batch of `camera` at each of the positions `azimuths` (radians, or an astropy
+    angle Quantity) around the
     hole at fixed distance, looking at the hole: e.g. `np.linspace(0, 2 pi, 36)`."""
     return _sweep(camera, "azimuth", azimuths)
 
 
 def pan(camera: Camera, yaws) -> Camera:
-    """A batch of `camera` turned by each of `yaws` (radians) in place: the hole
-    sweeps across the view."""
+    """A batch of `camera` turned by each of `yaws` (radians, or an astropy angle
+    Quantity) in place: the hole sweeps across the view."""
     return _sweep(camera, "yaw", yaws)
 
 
 def zoom(camera: Camera, fovs) -> Camera:
-    """A batch of `camera` with each horizontal field of view of `fovs` (radians)."""
+    """A batch of `camera` with each horizontal field of view of `fovs` (radians, or an
+    astropy angle Quantity)."""
     return _sweep(camera, "fov", fovs)

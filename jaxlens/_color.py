@@ -15,6 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._units import plain
+
 # Wyman, Sloan & Shirley (2013), "Simple analytic approximations to the CIE XYZ
 # colour matching functions", multi-lobe fit: (weight, mu, sigma below mu, above), nm.
 _CMF_LOBES = (
@@ -39,6 +41,7 @@ def cie_cmf(wavelength: ArrayLike, xp=jnp) -> Float[Array, "... 3"]:
     """CIE 1931 2-degree colour matching functions $(\\bar x, \\bar y, \\bar z)$ at
     `wavelength` (nm), from the Wyman-Sloan-Shirley multi-lobe fit (`xp`: `jnp` or
     `np`). **Returns:** `(..., 3)`, dimensionless ($\\bar y$ peaks at 1 near 555 nm)."""
+    wavelength = plain(wavelength, "wavelength", "a wavelength in nm")
     lam = xp.asarray(wavelength)
     out = []
     for lobes in _CMF_LOBES:
@@ -54,6 +57,8 @@ def planck(wavelength: ArrayLike, temperature: ArrayLike, xp=jnp):
     """Planck's law up to the constant $2hc^2$: $\\lambda^{-5}/(e^{c_2/\\lambda T} - 1)$,
     `wavelength` in nm, `temperature` in K (spectral radiance per unit wavelength,
     in units of $2hc^2$ nm$^{-5}$)."""
+    wavelength = plain(wavelength, "wavelength", "a wavelength in nm")
+    temperature = plain(temperature, "temperature", "a temperature in K")
     lam = xp.asarray(wavelength)
     return lam**-5.0 / xp.expm1(C2 / (lam * temperature))
 
@@ -62,6 +67,7 @@ def blackbody_xyz_quadrature(temperature) -> np.ndarray:
     """CIE XYZ of a blackbody at `temperature` (K, NumPy array) by direct quadrature
     of `planck` x `cie_cmf` on the 1 nm grid (trapezoid; the reference the table is
     made from). **Returns:** `(..., 3)` in units of $2hc^2$ nm$^{-4}$."""
+    temperature = plain(temperature, "temperature", "a temperature in K")
     t = np.asarray(temperature, np.float64)[..., None]
     spec = planck(_LAMBDA, t, xp=np)[..., None] * cie_cmf(_LAMBDA, xp=np)
     return np.trapezoid(spec, _LAMBDA, axis=-2)
@@ -118,17 +124,20 @@ def blackbody_color(temperature: ArrayLike) -> Float[Array, "... 3"]:
     """Linear sRGB colour of a blackbody at `temperature` (K), normalised to luminance
     $Y = 1$. Colours outside the sRGB gamut (below ~1900 K) keep their small negative
     channels; clip for display."""
+    temperature = plain(temperature, "temperature", "a temperature in K")
     return _lookup(_log_temperature(temperature))[1]
 
 
 def blackbody_luminance(temperature: ArrayLike) -> Float[Array, "..."]:
     """Luminance $Y$ of a blackbody at `temperature` (K), relative to one at 6500 K."""
+    temperature = plain(temperature, "temperature", "a temperature in K")
     return jnp.exp(_lookup(_log_temperature(temperature))[0])
 
 
 def blackbody_rgb(temperature: ArrayLike) -> Float[Array, "... 3"]:
     """Linear sRGB of a blackbody at `temperature` (K): colour times luminance, in
     units of the luminance of a 6500 K blackbody."""
+    temperature = plain(temperature, "temperature", "a temperature in K")
     log_y, rgb = _lookup(_log_temperature(temperature))
     return jnp.exp(log_y)[..., None] * rgb
 
@@ -143,6 +152,7 @@ def shifted_blackbody(temperature: ArrayLike, g: ArrayLike, mode: str = "spectra
 
     **Returns:** `(..., 3)` (broadcast of `temperature` and `g`).
     """
+    temperature = plain(temperature, "temperature", "a temperature in K")
     log_t = _log_temperature(temperature)
     g = jnp.asarray(g, log_t.dtype)
     if mode == "bolometric":

@@ -41,8 +41,9 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from . import _effects, _limits
 from ._integrators import rk4_step
-from ._limits import real
+from ._limits import radians, real
 from ._schema import Key, anything, greater, in_range, register
+from ._units import angle, length
 
 _PEAK_X = (7.0 / 6.0) ** 2  # r / r_in at the profile's maximum
 _PEAK_F = _PEAK_X**-0.75 * (1.0 - 1.0 / math.sqrt(_PEAK_X)) ** 0.25
@@ -53,10 +54,12 @@ class Disk(eqx.Module):
 
     **Fields:**
     - `r_in`, `r_out`: inner and outer radius (units of R_S; $1.5 < r_{in} < r_{out}$,
-      default the ISCO, 3).
+      default the ISCO, 3). A dimensionless astropy Quantity is read as R_S; a length
+      in metres, km, ... is refused (`jaxlens.schwarzschild_radii` converts it).
     - `inclination`: angle between the disk's normal and the line of sight (radians,
-      finite; 0 face-on, $\\pi/2$ edge-on).
-    - `position_angle`: turn of the disk about the line of sight (radians, finite).
+      or an astropy angle Quantity; finite; 0 face-on, $\\pi/2$ edge-on).
+    - `position_angle`: turn of the disk about the line of sight (radians, or an
+      astropy angle Quantity; finite).
     - `temperature`: peak temperature of the profile (K, finite and >= 1: the local
       temperature is held at 1 K or above, so a colder peak would brighten the disk's
       every annulus by the ratio of their luminances, beyond any float).
@@ -88,9 +91,10 @@ class Disk(eqx.Module):
                  inclination: ArrayLike = math.radians(80.0), *,
                  position_angle: ArrayLike = 0.0, temperature: ArrayLike = 8000.0,
                  brightness: ArrayLike = 1.0, crossings: int = 3, steps: int = 48):  # fmt: skip
-        self.r_in, self.r_out = real("r_in", r_in), real("r_out", r_out)
-        self.inclination = real("inclination", inclination)
-        self.position_angle = real("position_angle", position_angle)
+        self.r_in = real("r_in", length(r_in, "r_in"))
+        self.r_out = real("r_out", length(r_out, "r_out"))
+        self.inclination = radians("inclination", inclination)
+        self.position_angle = radians("position_angle", position_angle)
         self.temperature = real("temperature", temperature)
         self.brightness = real("brightness", brightness)
         self.crossings, self.steps = int(crossings), int(steps)
@@ -160,6 +164,8 @@ def disk_redshift(r: ArrayLike, lz: ArrayLike) -> Float[Array, "..."]:
     angular momentum `lz` (about the disk axis, per unit energy, units of R_S)
     leaving a Keplerian emitter at radius `r` > 1.5 (units of R_S),
     $\\Omega = \\sqrt{1/(2r^3)}$."""
+    r = length(r, "r")
+    lz = length(lz, "lz")
     r = jnp.asarray(r)
     omega = jnp.sqrt(0.5 / (r * r * r))
     return jnp.sqrt(1.0 - 1.5 / r) / (1.0 - omega * lz)
@@ -176,6 +182,9 @@ def can_reach(alpha, distance, r_out):
     """True for the rays (local angle `alpha` from the hole, radians; camera at
     `distance`, units of R_S) that come within `r_out` of the hole: all of them when
     the camera is inside `r_out`, else the inward ones with $b$ < `reach_radius(r_out)`."""
+    alpha = angle(alpha, "alpha")
+    distance = length(distance, "distance")
+    r_out = length(r_out, "r_out")
     d = jnp.asarray(distance, jnp.asarray(alpha).dtype)
     b = d * jnp.abs(jnp.sin(alpha)) * jnp.sqrt(d / (d - 1.0))
     return (d <= r_out) | ((jnp.cos(alpha) > 0) & (b < reach_radius(r_out)))
@@ -212,6 +221,8 @@ def trace_disk(
     **Returns:** `DiskHits` of the rays' shape. Pure array code: works under `jit`,
     `vmap` and `grad`; cost `disk.crossings * disk.steps` RK4 steps a ray.
     """
+    alpha = angle(alpha, "alpha")
+    distance = length(distance, "distance")
     alpha = jnp.asarray(alpha)
     dt = alpha.dtype
     cb, sb = jnp.asarray(cos_beta, dt), jnp.asarray(sin_beta, dt)
@@ -304,6 +315,8 @@ def disk_angle_bound(distance, r_out) -> float:
     """Host-side: the largest local angle (radians) of a ray from a static camera at
     `distance` (units of R_S, concrete) that can come within `r_out`; $\\pi$ when the
     camera is inside `r_out`."""
+    distance = length(distance, "distance")
+    r_out = length(r_out, "r_out")
     d, r = float(distance), float(r_out)
     if d <= r:
         return math.pi

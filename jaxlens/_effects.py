@@ -48,9 +48,10 @@ from ._color import (
     planck as planck,
     shifted_blackbody as shifted_blackbody,
 )
-from ._limits import real
+from ._limits import radians
 from ._schema import Key, anything, register
 from ._sky import BlackbodyStars as BlackbodyStars
+from ._units import length, plain
 
 # ---------------------------------------------------------------------- observers
 
@@ -58,6 +59,7 @@ from ._sky import BlackbodyStars as BlackbodyStars
 def static_blueshift(distance: ArrayLike) -> Float[Array, "..."]:
     """Frequency ratio $\\nu_{obs}/\\nu_\\infty = 1/\\sqrt{1 - 1/D}$ of light from
     infinity seen by a static observer at radius `distance` $D > 1$ (units of R_S)."""
+    distance = length(distance, "distance")
     d = jnp.asarray(distance, jnp.result_type(float, distance))
     return jnp.sqrt(d / (d - 1.0))
 
@@ -65,6 +67,7 @@ def static_blueshift(distance: ArrayLike) -> Float[Array, "..."]:
 def orbital_speed(distance: ArrayLike) -> Float[Array, "..."]:
     """Speed of a circular geodesic orbit at radius $D > 1.5$ (units of R_S), as a
     static observer there measures it: $v = 1/\\sqrt{2(D - 1)}$ (units of c)."""
+    distance = length(distance, "distance")
     d = jnp.asarray(distance, jnp.result_type(float, distance))
     return jnp.sqrt(0.5 / (d - 1.0))
 
@@ -72,12 +75,14 @@ def orbital_speed(distance: ArrayLike) -> Float[Array, "..."]:
 def infall_speed(distance: ArrayLike) -> Float[Array, "..."]:
     """Speed at radius $D$ (units of R_S) of a fall from rest at infinity, measured by
     the static observer there: $v = \\sqrt{1/D}$ (units of c)."""
+    distance = length(distance, "distance")
     d = jnp.asarray(distance, jnp.result_type(float, distance))
     return jnp.sqrt(1.0 / d)
 
 
 def lorentz_factor(v: ArrayLike) -> Float[Array, "..."]:
     """$\\gamma = 1/\\sqrt{(1 - v)(1 + v)}$ for a speed $0 \\le v < 1$ (units of c)."""
+    v = plain(v, "v", "a speed in units of c")
     v = jnp.asarray(v, jnp.result_type(float, v))
     return 1.0 / jnp.sqrt((1.0 - v) * (1.0 + v))
 
@@ -85,6 +90,7 @@ def lorentz_factor(v: ArrayLike) -> Float[Array, "..."]:
 def aberrate_cos(cos_a: ArrayLike, v: ArrayLike) -> Float[Array, "..."]:
     """Static-frame $\\cos a = (\\cos a' - v)/(1 - v \\cos a')$ of a look direction at
     angle $a'$ from the velocity in the frame moving at speed `v` (units of c)."""
+    v = plain(v, "v", "a speed in units of c")
     return (cos_a - v) / (1.0 - v * cos_a)
 
 
@@ -100,6 +106,7 @@ def aberrate(n: Float[Array, "... 3"], v: ArrayLike, e: Float[Array, "3"]) -> Fl
 
     **Returns:** static-frame unit look directions `(..., 3)`.
     """
+    v = plain(v, "v", "a speed in units of c")
     e = jnp.asarray(e, n.dtype)
     v = jnp.asarray(v, n.dtype)
     p = n[..., 0] * e[0] + n[..., 1] * e[1] + n[..., 2] * e[2]
@@ -112,6 +119,7 @@ def aberrate(n: Float[Array, "... 3"], v: ArrayLike, e: Float[Array, "3"]) -> Fl
 def doppler_factor(cos_a: ArrayLike, v: ArrayLike) -> Float[Array, "..."]:
     """$\\nu_{moving}/\\nu_{static} = \\sqrt{1 - v^2}/(1 - v\\cos a')$ for light seen along
     a look direction at angle $a'$ from the velocity (moving frame; `v` in c)."""
+    v = plain(v, "v", "a speed in units of c")
     return jnp.sqrt((1.0 - v) * (1.0 + v)) / (1.0 - v * cos_a)
 
 
@@ -155,7 +163,8 @@ class CircularOrbit(AbstractMotion):
     Speed $v = 1/\\sqrt{2(D - 1)}$ in the static frame (`orbital_speed`), tangential.
     **Fields:** `angle`: direction of motion across the line of sight, radians from
     the camera frame's $+x$ toward $+y$ (0: moving to the right of an unrotated
-    view; an increasing `Camera.azimuth` is the motion at `angle` $= \\pi$); finite.
+    view; an increasing `Camera.azimuth` is the motion at `angle` $= \\pi$); finite;
+    an astropy angle Quantity is converted.
     """
 
     radial: ClassVar[bool] = False
@@ -163,7 +172,7 @@ class CircularOrbit(AbstractMotion):
     limits: ClassVar = {"angle": _limits.finite("radians")}
 
     def __init__(self, angle: ArrayLike = 0.0):
-        self.angle = real("angle", angle)
+        self.angle = radians("angle", angle)
 
     def speed(self, distance):
         return orbital_speed(distance)

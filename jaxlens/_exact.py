@@ -5,6 +5,10 @@ $P(u) = u^3 - u^2 + 1/b^2$, evaluated exactly with Carlson's symmetric elliptic
 integral $R_F$. The roots of $P$ are computed in forms that stay accurate in the
 weak field ($b \\to \\infty$, two roots $\\to 0$) and near the critical impact
 parameter ($b \\to b_c$, two roots merge at $u = 2/3$).
+
+The public functions take angles in radians or as astropy angle Quantities, lengths
+(`distance`, `radius`, `plane_distance`, `b`) in units of R_S or as dimensionless
+Quantities; a length in metres, km, ... is refused (`jaxlens.schwarzschild_radii`).
 """
 
 import math
@@ -15,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._status import CAPTURED, ESCAPED, UNRESOLVED
+from ._units import angle, length
 
 B_CRIT = 1.5 * math.sqrt(3.0)  # critical impact parameter 3 sqrt(3) / 2, units of R_S
 R_PHOTON = 1.5  # photon-sphere radius, units of R_S
@@ -119,10 +124,13 @@ def impact_parameter(alpha, distance):
     $b = D \\sin\\alpha / \\sqrt{1 - 1/D}$.
 
     **Arguments:** `alpha`: local angle from the inward radial direction
-    (radians). `distance`: camera radius $D > 1$ (units of R_S).
+    (radians, or an astropy angle). `distance`: camera radius $D > 1$ (units of R_S,
+    or a dimensionless Quantity).
 
     **Returns:** $b \\ge 0$ (units of R_S).
     """
+    alpha = angle(alpha, "alpha")
+    distance = length(distance, "distance")
     return distance * jnp.abs(jnp.sin(alpha)) * jnp.sqrt(distance / (distance - 1.0))
 
 
@@ -134,6 +142,7 @@ def shadow_angle(distance):
     **Returns:** $\\alpha_{sh}$ in radians, measured from the direction of the
     hole; above $\\pi/2$ for $D < 1.5$.
     """
+    distance = length(distance, "distance")
     return shadow_angle_with(jnp.asarray(distance), jnp)
 
 
@@ -337,6 +346,7 @@ def darwin_deflection(b, *, iterations: int = 12):
 
     **Returns:** total deflection $\\hat\\alpha = 2\\int_0^{u_2} du/\\sqrt{P} - \\pi$, radians.
     """
+    b = length(b, "b")
     s = B_CRIT / b
     u1, u2, _, e3, _, d32, d21, _ = real_roots(s, (1.0 - s) * (1.0 + s))
     rf = carlson_rf(-u1 * d32, d21 * d32, d21 * (2.0 / 3.0 + e3), iterations=iterations)
@@ -346,11 +356,13 @@ def darwin_deflection(b, *, iterations: int = 12):
 
 def weak_field_deflection(b):
     """Weak-field series of the deflection: $2/b + (15\\pi/16)/b^2 + (16/3)/b^3$ (radians)."""
+    b = length(b, "b")
     return 2.0 / b + (15.0 * jnp.pi / 16.0) / b**2 + (16.0 / 3.0) / b**3
 
 
 def strong_field_deflection(b):
     """Strong-deflection limit (Bozza 2002) for $b \\to b_c^+$, radians."""
+    b = length(b, "b")
     return -jnp.log(b / B_CRIT - 1.0) + math.log(216.0 * (7.0 - 4.0 * math.sqrt(3.0))) - jnp.pi
 
 
@@ -367,6 +379,7 @@ def grazing_angle(distance, radius):
 
 def periapsis(b):
     """Periapsis radius $r_0$ of a ray with impact parameter $b > b_c$: $b^2 = r_0^3/(r_0-1)$."""
+    b = length(b, "b")
     s = B_CRIT / b
     return 1.0 / real_roots(s, (1.0 - s) * (1.0 + s))[1]
 
@@ -450,6 +463,9 @@ def radius_crossings(alpha, distance, radius, *, iterations: int = 12,
 
     **Returns:** `Crossings(first, second, count)`.
     """
+    alpha = angle(alpha, "alpha")
+    distance = length(distance, "distance")
+    radius = length(radius, "radius")
     alpha, distance, radius = jnp.broadcast_arrays(alpha, distance, radius)
     dtype = alpha.dtype
     at_infinity = jnp.isinf(radius)
@@ -701,6 +717,9 @@ def plane_crossings(alpha, distance, plane_distance, *, steps: int = 12) -> Plan
 
     **Returns:** `PlaneCrossings(phi, radius, hit)`.
     """
+    alpha = angle(alpha, "alpha")
+    distance = length(distance, "distance")
+    plane_distance = length(plane_distance, "plane_distance")
     alpha, d, plane = jnp.broadcast_arrays(
         *(jnp.asarray(v, jnp.result_type(float, alpha, distance, plane_distance))
           for v in (alpha, distance, plane_distance))

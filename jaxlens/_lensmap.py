@@ -35,6 +35,7 @@ from ._ray_inputs import (
     distance_bad,
 )
 from ._raymap import RayMap
+from ._units import length, solar_masses
 from ._util import concrete
 
 
@@ -146,11 +147,13 @@ class LensedImages(eqx.Module):
     time: Float[Array, "2 ..."] | None = None
 
     def delay_seconds(self, mass_msun) -> Float[Array, "2 ..."]:
-        """`time` in seconds for a hole of `mass_msun` solar masses (one R_S/c is
+        """`time` in seconds for a hole of `mass_msun` solar masses (or an astropy mass
+        Quantity; one R_S/c is
         $2GM/c^3$ = 9.85 microseconds per solar mass); differences between images are
         their delays in seconds."""
         if self.time is None:
             raise ValueError("these images carry no times: point_source_images_at computes them")
+        mass_msun = solar_masses(mass_msun, "mass_msun")
         return self.time * (RS_SUN_M / C_LIGHT) * jnp.asarray(mass_msun)
 
     def pixels(self, camera: Camera):
@@ -370,7 +373,8 @@ def point_source_images_at(
 
     **Arguments:**
     - `direction (..., 3)`: finite, non-zero (any length).
-    - `distance`: the camera's radius $D > 1.5$ (units of R_S; a camera inside the
+    - `distance`: the camera's radius $D > 1.5$ (units of R_S, or a dimensionless
+      astropy Quantity, as `source_distance`; a camera inside the
       photon sphere sees sources at a finite distance along more branches than these).
     - `source_distance`: the source's radius $R > 1$ (units of R_S; `inf`: at
       infinity). Broadcast to the directions' batch shape.
@@ -391,6 +395,8 @@ def point_source_images_at(
     `ValueError` naming it, eagerly, and an `eqx.error_if` error under `jit`.
     """
     order, direction = _checked_source(order, direction)
+    distance = length(distance, "distance")
+    source_distance = length(source_distance, "source_distance")
     distance = _checked_points(
         "distance", distance, "finite and > 1.5 (units of R_S: a camera outside the photon "
         "sphere)", lambda x, xp: ~xp.isfinite(x) | ~(x > 1.5) | (x > MAX_DISTANCE),

@@ -25,6 +25,7 @@ import numpy as np
 
 from ._messages import real_array, shown as _shown
 from ._schema import MAGNITUDE_MAX
+from ._units import angle
 from ._util import as_float, concrete, has_tracer
 
 _MAX = f"{MAGNITUDE_MAX:g}".replace("e+", "e")  # 1e30
@@ -130,6 +131,12 @@ def real(name: str, x, dtype=None):
     if not isinstance(x, jax.Array | np.ndarray) and has_tracer(x):
         x = jnp.asarray(x)  # a list holding tracers
     return as_float(real_array(name, x), dtype)
+
+
+def radians(name: str, x, dtype=None):
+    """`real` of an angle: radians, an astropy angle Quantity converted first
+    (`_units.angle`; a Quantity of another dimension is a `ValueError` naming `name`)."""
+    return real(name, angle(x, name), dtype)
 
 
 def shown(value, bad) -> str:

@@ -2,12 +2,15 @@
 
 Every layer names the value it refuses (a scene file's key, a command-line option, an
 argument of `trace` or of a sky), so these helpers sit below all of them: they import
-NumPy and nothing of jaxlens, and load no JAX (the command line's parser uses them).
+NumPy and, of jaxlens, only `_units` (NumPy and constants), and load no JAX (the
+command line's parser uses them).
 """
 
 import math
 
 import numpy as np
+
+from ._units import plain
 
 # Values in messages are cut to about this many characters: a list of a million
 # numbers or a path of megabytes would make an unreadable line.
@@ -56,7 +59,10 @@ def real_array(name: str, x):
     array, a tracer), else `np.asarray(x)`. A complex, boolean, string or object value,
     or a ragged list, is a `TypeError` naming `name` and the value (NumPy would drop an
     imaginary part with a warning, or fail deep inside the render). A list holding
-    tracers is the caller's to convert first (`jnp.asarray`)."""
+    tracers is the caller's to convert first (`jnp.asarray`). An astropy Quantity is a
+    `ValueError`: an argument that takes one converts it before this check
+    (`_units`), and no unit is dropped silently anywhere else."""
+    x = plain(x, name, "a plain number or array (in the unit its docstring gives)")
     given = x
     if not hasattr(x, "dtype"):
         try:

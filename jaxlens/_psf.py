@@ -41,6 +41,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from ._messages import real_array
+from ._units import plain
 from ._util import as_float, concrete, has_tracer
 
 _CENTRES = ("middle", "centroid")
@@ -89,6 +90,7 @@ def gaussian_otf(shape: tuple[int, int], sigma_px: ArrayLike) -> Float[Array, "H
     `sigma_px` (the default float dtype for Python numbers).
     """
     h, w = _shape2(shape)
+    sigma_px = plain(sigma_px, "sigma_px", "a width in pixels")
     sigma = as_float(sigma_px)
     if sigma.ndim != 0:
         raise ValueError(f"sigma_px must be a scalar (pixels); got shape {sigma.shape}")

@@ -27,6 +27,7 @@ from ._compile import program
 from ._messages import shown
 from ._ray_inputs import check_distance, check_dtype, check_real
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, TraceResult
+from ._units import angle, length
 from ._util import concrete, fusion_barrier, is_concrete, run_now
 
 # Interpolation error of a cubic Hermite spline: h^4 / 384 max|phi''''(tau)|, and
@@ -96,7 +97,8 @@ class RayMap(eqx.Module):
         """Tabulate Phi(alpha) for a camera at `distance` (units of R_S, scalar).
 
         **Arguments:**
-        - `distance`: camera radius $D > 1$ (units of R_S).
+        - `distance`: camera radius $D > 1$ (units of R_S, or a dimensionless astropy
+          Quantity; a length in metres, km, ... is refused: `schwarzschild_radii`).
         - `accuracy`: target interpolation error of phi (radians); sets the number
           of knots unless `knots` is given.
         - `max_windings`: rays sweeping more than $2\\pi\\times$ this are unresolved.
@@ -129,11 +131,11 @@ class RayMap(eqx.Module):
         a `ValueError`/`TypeError` eagerly, an `eqx.error_if` error at run time under
         `jit`.
         """
-        distance = check_real("distance", distance)
+        distance = check_real("distance", length(distance, "distance"))
         dtype = check_dtype(jnp.result_type(float, distance), "dtype of distance")
         distance = check_distance(distance, dtype)
         if radius is not None:
-            radius = check_real("radius", radius)
+            radius = check_real("radius", length(radius, "radius"))
             r, d = concrete(radius), concrete(distance)
             if r is not None and d is not None and not np.all(np.asarray(r) > d):
                 raise ValueError(f"radius={shown(np.asarray(r))} must be > distance = "
@@ -147,8 +149,9 @@ class RayMap(eqx.Module):
 
     def escape_angle(self, alpha: ArrayLike) -> Float[Array, "..."]:
         """Interpolated escape angle (radians) at `alpha`; meaningful where
-        `alpha > alpha_sh` (escaping rays), finite everywhere."""
-        alpha = jnp.asarray(alpha, self.phi.dtype)
+        `alpha > alpha_sh` (escaping rays), finite everywhere; `alpha` in radians or an
+        astropy angle Quantity."""
+        alpha = jnp.asarray(angle(alpha, "alpha"), self.phi.dtype)
         return _look_up(alpha, self.alpha_sh, (self._outer(),))[0]
 
     def _outer(self) -> tuple:
@@ -214,15 +217,16 @@ class RayMap(eqx.Module):
         crosses the horizon; needs `build(..., captured=True)`."""
         if self.inner is None:
             raise ValueError("this RayMap was built without captured=True")
-        alpha = jnp.asarray(alpha, self.phi.dtype)
+        alpha = jnp.asarray(angle(alpha, "alpha"), self.phi.dtype)
         return _look_up(alpha, self.alpha_sh, (self.inner,), sign=-1.0)[0]
 
     def __call__(self, alpha: ArrayLike):
-        """Trace rays at local angles `alpha` (radians) through the table.
+        """Trace rays at local angles `alpha` (radians, or an astropy angle Quantity)
+        through the table.
 
         **Returns:** a `TraceResult`; `r_min` is the closed-form periapsis.
         """
-        alpha = jnp.asarray(alpha, self.phi.dtype)
+        alpha = jnp.asarray(angle(alpha, "alpha"), self.phi.dtype)
         gap = alpha - self.alpha_sh
         escaped = gap > 0
         # Both sides, and the periapsis of the escaping one, from one logarithm and one

@@ -81,6 +81,7 @@ from ._schema import (
     in_range,
 )
 from ._sky import AbstractSky
+from ._units import length
 from ._util import as_float, concrete
 
 METHODS = ("auto", "table", "weak_field", "trace")
@@ -309,7 +310,7 @@ def _source_distance(r):
     `MAX_DISTANCE` (units of R_S), a `ValueError` naming the value otherwise."""
     if r is None:
         return None
-    r = check_real("source_distance", r)
+    r = check_real("source_distance", length(r, "source_distance"))
     c = concrete(r)
     if c is not None:
         c = np.asarray(c, np.float64)
@@ -330,7 +331,7 @@ def _source_plane(plane):
     the value otherwise."""
     if plane is None:
         return None
-    plane = check_real("source_plane", plane)
+    plane = check_real("source_plane", length(plane, "source_plane"))
     c = concrete(plane)
     if c is not None:
         c = np.asarray(c, np.float64)
@@ -386,8 +387,11 @@ class Scene(eqx.Module):
       whole sky (units of R_S; $1 < R \\le 10^{30}$; a concrete `inf` is `None`). Each
       ray's crossings of $r = R$ (at most two: inward, then outward after its
       periapsis) add the sky's radiance in the direction from the hole to the
-      crossing point. An array leaf: differentiable, traced in a fit.
-    - `source_plane`: `None`, or the distance $L > 0$ (units of R_S) of a plane
+      crossing point. An array leaf: differentiable, traced in a fit. A dimensionless
+      astropy Quantity is read as R_S, a length in metres, km, ... is refused (as for
+      `Camera.distance`; `jaxlens.schwarzschild_radii` converts it).
+    - `source_plane`: `None`, or the distance $L > 0$ (units of R_S, as
+      `source_distance`) of a plane
       perpendicular to the line of sight behind the hole that carries the sky: the sky
       is called with the direction from the hole to each ray's outward crossing of
       $z = L$ (`plane_crossings`), so that `PlaneImage.at_distance(image, S, L)` draws

@@ -24,6 +24,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from ._ray_inputs import check_distance
 from ._status import TraceResult
 from ._trace import trace
+from ._units import angle, length
 
 AXIS = "rays"  # name of the mesh axis the rays are split over
 
@@ -200,14 +201,17 @@ def trace_sharded(
     The same rays give the same `TraceResult` as `jax.jit(trace)` on one device.
 
     **Arguments:**
-    - `alpha`: ray angles from the inward radial direction (radians), any shape.
-    - `distance`: camera radius $D > 1$ (units of R_S); a scalar, or an array that
-      broadcasts with `alpha`.
+    - `alpha`: ray angles from the inward radial direction (radians, or an astropy
+      angle Quantity), any shape.
+    - `distance`: camera radius $D > 1$ (units of R_S, or a dimensionless Quantity);
+      a scalar, or an array that broadcasts with `alpha`.
     - `chunk`, `mesh`, `progress`: as in `shard_map_rays`.
     - `**trace_kwargs`: passed to `trace` (`accuracy`, `method`, `max_windings`).
 
     **Returns:** a `TraceResult` of NumPy arrays of the broadcast shape.
     """
+    alpha = angle(alpha, "alpha")
+    distance = length(distance, "distance")
     # The same ValueError as `trace`, raised on the host before anything is compiled.
     check_distance(np.asarray(distance))
     if np.ndim(alpha) == 0 and np.ndim(distance) == 0:

@@ -24,6 +24,7 @@ from ._ray_inputs import (
 )
 from ._raymap import placeholder, tabulate
 from ._status import CAPTURED, ESCAPED, UNRESOLVED, RayStatus, TraceResult
+from ._units import angle, length
 from ._util import has_tracer, to_device, tracing
 
 # ---------------------------------------------------------------------------
@@ -334,9 +335,12 @@ def trace(
 
     **Arguments:**
     - `alpha`: local angle of each ray from the inward radial direction, radians
-      in $[0, \\pi]$ (0 points at the hole, $\\pi$ straight away).
+      in $[0, \\pi]$ (0 points at the hole, $\\pi$ straight away), or an astropy
+      angle Quantity (converted before the trace).
     - `distance`: camera radius $1 < D \\le 10^{30}$ (units of R_S, `MAX_DISTANCE`;
-      also > 1 after rounding to the rays' dtype). Broadcasts with `alpha`.
+      also > 1 after rounding to the rays' dtype). Broadcasts with `alpha`. A
+      dimensionless astropy Quantity is read as R_S; a length in metres, km, ... is
+      refused (`jaxlens.schwarzschild_radii` converts it with the hole's mass).
     - `accuracy`: target absolute error of `phi` (radians, finite, > 0); picks the cheapest
       setting of the method that met it in the measured ladder. Rays within
       relative $\\delta$ of the critical angle are limited by conditioning to
@@ -371,6 +375,7 @@ def trace(
     has its table built inside the program, on every call. Asking for `phi` alone
     under `jit` skips the rest (`benchmarks/results/floor.md` gives the costs).
     """
+    accuracy = angle(accuracy, "accuracy")
     _check_number("accuracy", accuracy, "> 0 (radians)", lambda v: v > 0)
     _check_number("max_windings", max_windings, "> 0 (turns)", lambda v: v > 0)
     if not isinstance(method, str | AbstractMethod):
@@ -378,8 +383,8 @@ def trace(
             f"method={shown(method)} must be one of {', '.join(map(repr, METHODS))} or an "
             "AbstractMethod instance (e.g. jl.RK4(dphi=0.01))"
         )
-    alpha = check_real("alpha", alpha)
-    distance = check_real("distance", distance)
+    alpha = check_real("alpha", angle(alpha, "alpha"))
+    distance = check_real("distance", length(distance, "distance"))
     dtype = check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
     distance = check_distance(distance, dtype)
     alpha_bad = bad_alpha(alpha)

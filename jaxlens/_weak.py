@@ -12,6 +12,7 @@ from jaxtyping import ArrayLike
 
 from ._exact import B_CRIT
 from ._ray_inputs import ALPHA_RANGE, bad_alpha, check_distance, check_dtype, check_real
+from ._units import angle, length
 
 # Coefficients c_n of (1 - x)^(-1/2) = sum c_n x^n.
 _C = (1.0, 0.5, 0.375, 0.3125, 0.2734375)
@@ -64,8 +65,9 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
     """Escape angle of rays with a far periapsis, as a series in $u_2 = 1/r_0$, with a
     rigorous bound on the truncation error (`weak_field_series`, its values checked).
 
-    **Arguments:** `alpha` (local angle from the hole, radians in $[0, \\pi]$),
-    `distance` (camera radius, units of R_S, $1 < D \\le 10^{30}$ as for `trace`; the
+    **Arguments:** `alpha` (local angle from the hole, radians in $[0, \\pi]$, or an
+    astropy angle Quantity), `distance` (camera radius, units of R_S or a
+    dimensionless Quantity, $1 < D \\le 10^{30}$ as for `trace`; the
     series applies only outside the photon sphere, $D > 1.5$, and `bound` is `inf`
     elsewhere); `order` $N \\in \\{1, 2, 3\\}$ (static).
 
@@ -80,8 +82,8 @@ def weak_field_escape_angle(alpha: ArrayLike, distance: ArrayLike, *, order: int
 
     if order not in (1, 2, 3):
         raise ValueError(f"order={order!r} must be 1, 2 or 3")
-    alpha = check_real("alpha", alpha)
-    distance = check_real("distance", distance)
+    alpha = check_real("alpha", angle(alpha, "alpha"))
+    distance = check_real("distance", length(distance, "distance"))
     dtype = check_dtype(jnp.result_type(float, alpha, distance), "dtype of alpha and distance")
     distance = check_distance(distance, dtype)
     bad = bad_alpha(alpha)

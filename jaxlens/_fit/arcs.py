@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 
 from .._compile import program
+from .._units import length
 from .._util import host_driver, to_device
 from .noise import noise_level
 from .pixels import bin_valid, pixel_centres, real_image
@@ -822,7 +823,8 @@ def offset_from_radii(rho_outer, rho_inner, distance, focal):
     **Arguments:**
     - `rho_outer`, `rho_inner`: radii (pixels from the hole's image) of the primary
       (outer) and secondary (inner) images; arrays broadcast.
-    - `distance`: camera radius $D$ (units of R_S).
+    - `distance`: camera radius $D$ (units of R_S, or a dimensionless astropy
+      Quantity).
     - `focal`: focal length $f$ (pixels): $(W/2) / \\tan(\\mathrm{FOV}/2)$.
 
     **Returns:** $\\beta$ (radians), a float or a numpy array of the broadcast shape;
@@ -830,6 +832,7 @@ def offset_from_radii(rho_outer, rho_inner, distance, focal):
     """
     import jaxlens
 
+    distance = length(distance, "distance")
     with jax.enable_x64(True):
         ro, ri, d, f = np.broadcast_arrays(
             *(np.asarray(v, np.float64) for v in (rho_outer, rho_inner, distance, focal))

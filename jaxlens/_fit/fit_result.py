@@ -225,12 +225,14 @@ class Fit:
         return self._scale("observer_distance")[1]
 
     def distance_m(self, mass_msun: float) -> tuple[float, float]:
-        """Camera distance in metres, and its standard error, for a hole of `mass_msun`."""
+        """Camera distance in metres, and its standard error, for a hole of `mass_msun`
+        (solar masses, or an astropy mass Quantity)."""
         rs = float(schwarzschild_radius_m(mass_msun))
         return self.values["distance"] * rs, self.errors.get("distance", 0.0) * rs
 
     def mass_msun(self, distance_m: float) -> tuple[float, float]:
-        """Mass of the hole (solar masses) for a camera `distance_m` metres away."""
+        """Mass of the hole (solar masses) for a camera `distance_m` metres (or an
+        astropy length Quantity) away."""
         m = float(mass_from_distance(self.values["distance"], distance_m))
         return m, m * self.errors.get("distance", 0.0) / self.values["distance"]
 

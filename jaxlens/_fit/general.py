@@ -22,7 +22,7 @@ from .fit_result import Fit
 from .noise import white_noise_found
 from .objective import loss, renoise_placeholders, solve, solve_passes
 from .observation import Observation, observe
-from .params import apply, in_scene, parameter, split_name, star_of
+from .params import apply, in_scene, init_value, parameter, split_name, star_of
 from .progress import Progress, progress_of
 from .source import SourceDistance
 
@@ -99,7 +99,9 @@ def fit(
       (`jaxlens.Gaussian`, `jaxlens.Poisson`). `None` (default): an `Observation`'s
       own, else Gaussian.
     - `mask`: bool array (True = bad pixel) or a mask image path (> 0.5 = bad).
-    - `init`: starting values by parameter name (physical units; `fov_deg` allowed).
+    - `init`: starting values by parameter name (physical units; `fov_deg` allowed;
+      an astropy Quantity is converted: a dimensionless one for `distance`, an angle
+      for `fov`, `sigma`, ...; a length in metres is refused, as by `Camera`).
     - `supersample`: the Gauss-Legendre order k (default: from the ring's width in the
       compared bins before the PSF, the image's width less the PSF's in quadrature:
       the smallest k averaging its Gaussian to ~4e-5 of its peak; 3 at least under a
@@ -201,7 +203,7 @@ def _checked_source(scene, source) -> SourceDistance | None:
 def _options(obs: Observation, free: tuple, init, **settings) -> st.Options:
     """The fit's settings: `fov_deg` in `init` converted, the FOV held where a FITS
     WCS fixes it."""
-    init = dict(init or {})
+    init = {name: init_value(name, v) for name, v in (init or {}).items()}
     if "fov_deg" in init:
         init["fov"] = math.radians(init.pop("fov_deg"))
     if obs.fov is not None and "fov" not in init:

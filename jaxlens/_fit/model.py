@@ -11,6 +11,7 @@ from .. import _kernel, _plan
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
+from .._units import angle, length
 from .._util import concrete
 from .pixels import pixel_edges
 from .table import escape_table
@@ -101,10 +102,12 @@ def ring_image(
     their exact footprint coverage (so the edge contributes gradient).
 
     **Arguments:**
-    - `distance`: camera radius $D > 1.5$ (units of R_S).
-    - `fov`: horizontal field of view (radians).
+    - `distance`: camera radius $D > 1.5$ (units of R_S, or a dimensionless astropy
+      Quantity; a length in metres is refused: `schwarzschild_radii` converts it).
+    - `fov`: horizontal field of view (radians, or an astropy angle Quantity).
     - `width`, `height`: image size (pixels, static).
-    - `sigma`: the star's Gaussian width in angular distance (radians).
+    - `sigma`: the star's Gaussian width in angular distance (radians, or an astropy
+      angle Quantity).
     - `brightness`: peak radiance $A$ of the star; `floor`: the uniform sky level.
     - `ring_flux`: factor on the flux of the relativistic rings (images of order 1 and
       2); 1 is the exact area average, as a fit's `ring_flux` reports it.
@@ -116,6 +119,8 @@ def ring_image(
     for name, v in (("width", width), ("height", height), ("supersample", supersample)):
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
             raise ValueError(f"{name}={v!r} must be a whole number >= 1 (pixels)")
+    distance = length(distance, "distance")
+    fov, sigma = angle(fov, "fov"), angle(sigma, "sigma")
     distance, fov, sigma, brightness, floor, ring_flux = (
         _checked(v, name, ok, valid)
         for v, name, ok, valid in (

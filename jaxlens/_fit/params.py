@@ -18,6 +18,7 @@ import numpy as np
 
 from .._sky import GaussianStar, SkySum, Uniform
 from .._sky._base import angles_from_direction, direction_from_angles
+from .._units import angle, is_quantity, length, plain
 from .._util import has_tracer, to_device
 
 
@@ -135,6 +136,24 @@ def split_name(name: str) -> tuple[str, int]:
 def is_angle(name: str) -> bool:
     """Whether the parameter `name` is an angle (radians; reported in degrees too)."""
     return split_name(name)[0] in ANGLES
+
+
+def init_value(name: str, value):
+    """A starting value (`fit`'s `init`) in its parameter's unit: an astropy Quantity
+    converted (`_units`: R_S for the distance, radians for an angle, degrees for
+    `fov_deg`) or, for a parameter without an astropy unit, refused with a
+    `ValueError`; anything else returned as it is."""
+    if not is_quantity(value):
+        return value
+    where = f"init[{name!r}]"
+    if name == "fov_deg":
+        return math.degrees(angle(value, where))
+    unit = parameter(name).unit
+    if unit == "R_S":
+        return length(value, where)
+    if unit == "rad":
+        return angle(value, where)
+    return plain(value, where, f"in {unit or 'no unit'}")
 
 
 def parameter(name: str) -> Parameter:

@@ -6,6 +6,7 @@ import math
 from .._camera import Camera
 from .._scene import Scene
 from .._sky import GaussianStar, Uniform
+from .._units import angle
 from .._util import host_driver
 from .fit_result import Fit
 from .general import fit
@@ -60,7 +61,8 @@ def fit_ring(
       `Fit.transfer` and `Fit.transfer_reason` say which and why.
     - `pixels`: `"area"`, `"point"` or `"auto"`: how the pixels sampled the light
       (`observe`; a default render samples each pixel at its centre).
-    - `star_sigma`: the star's Gaussian width (radians) when known; fitted otherwise.
+    - `star_sigma`: the star's Gaussian width (radians, or an astropy angle Quantity)
+      when known; fitted otherwise.
     - `psf`, `noise`, `gain`, `mask`: the point-spread function (a `GaussianPSF`, an
       `ImagePSF`, a Gaussian width in pixels or a PSF image), the noise model and the
       bad pixels, as `observe` takes them.
@@ -88,6 +90,7 @@ def fit_ring(
     """
     host_driver("fit_ring", "differentiate the model (jaxlens.ring_image) instead", image,
                 star_sigma, init)  # fmt: skip
+    star_sigma = angle(star_sigma, "star_sigma")
     if star_sigma is not None and not (0 < star_sigma < math.pi):
         raise ValueError(f"star_sigma={star_sigma!r} must be in (0, pi) radians")
     obs = observe(image, transfer=transfer, mask=mask, psf=psf, noise=noise, gain=gain,

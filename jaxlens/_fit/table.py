@@ -14,6 +14,7 @@ from .._exact import finite_crossings, grazing_angle
 from .._messages import shown
 from .._ray_inputs import check_distance, check_dtype, check_real
 from .._raymap import RayMap, _difference_slopes, tabulate
+from .._units import length
 from .._util import concrete
 from .._weak import _C, _I_HALF, weak_field_terms
 
@@ -33,7 +34,8 @@ _SERIES_ITERATIONS = 6  # each gains ~ -log10(u2) >= 1.8 digits at D >= 2e3
 def einstein_ring_angle(distance: ArrayLike) -> Float[Array, "..."]:
     """Angle of the primary Einstein ring from the direction of the hole, radians.
 
-    The local angle $\\alpha_E$ at which a static camera at `distance` (units of R_S,
+    The local angle $\\alpha_E$ at which a static camera at `distance` (units of R_S or
+    a dimensionless astropy Quantity,
     $D_{ring} = 1.7603089815759632 \\le D \\le 10^{30}$, any shape) sees a source
     exactly behind the hole at infinity: $\\Phi(\\alpha_E) = \\pi$. Solved on the ray
     map of the exact escape angle (`escape_table`; error below $10^{-10}$ rad against
@@ -51,7 +53,7 @@ def einstein_ring_angle(distance: ArrayLike) -> Float[Array, "..."]:
     **Returns:** $\\alpha_E$ (radians), e.g. 29.8283 deg at $D = 10$;
     $\\approx\\sqrt{2/D}$ for $D \\gg 1$; $\\pi/2$ at $D_{ring}$.
     """
-    distance = check_real("distance", distance)
+    distance = check_real("distance", length(distance, "distance"))
     dtype = check_dtype(jnp.result_type(float, distance), "dtype of distance")
     distance = check_distance(distance, dtype)
     known = concrete(distance)

@@ -5,28 +5,37 @@ astropy `Quantity` in and out where astropy is installed (an optional extra)."""
 import dataclasses
 import math
 import re
-import sys
 
 from jaxtyping import ArrayLike
 
 from .._constants import C_LIGHT as C_LIGHT, GM_SUN as GM_SUN, RS_SUN_M as RS_SUN_M
+from .._units import (
+    astropy_units as _astropy_units,
+    is_quantity as is_quantity,
+    length,
+    metres,
+    solar_masses,
+)
 
 
 def schwarzschild_radius_m(mass_msun: ArrayLike):
-    """Schwarzschild radius $2GM/c^2$ in metres of a mass in solar masses."""
-    return RS_SUN_M * mass_msun
+    """Schwarzschild radius $2GM/c^2$ in metres of a mass in solar masses (or an
+    astropy mass Quantity)."""
+    return RS_SUN_M * solar_masses(mass_msun, "mass_msun")
 
 
 def distance_in_metres(distance: ArrayLike, mass_msun: ArrayLike):
-    """Camera distance in metres, from the distance in units of R_S and the mass of the
-    hole in solar masses."""
-    return distance * schwarzschild_radius_m(mass_msun)
+    """Camera distance in metres, from the distance in units of R_S (a plain number or
+    a dimensionless Quantity) and the mass of the hole in solar masses (or an astropy
+    mass Quantity)."""
+    return length(distance, "distance", mass_msun) * schwarzschild_radius_m(mass_msun)
 
 
 def mass_from_distance(distance: ArrayLike, distance_m: ArrayLike):
-    """Mass of the hole in solar masses, from the camera distance in units of R_S and
-    the same distance in metres."""
-    return distance_m / (distance * RS_SUN_M)
+    """Mass of the hole in solar masses, from the camera distance in units of R_S (a
+    plain number or a dimensionless Quantity) and the same distance in metres (or an
+    astropy length Quantity)."""
+    return metres(distance_m, "distance_m") / (length(distance, "distance") * RS_SUN_M)
 
 
 # Lengths a command line or a user may give a distance in, in metres: the IAU 2012
@@ -91,18 +100,6 @@ def parse_length(text: str, *, name: str = "length") -> Length:
     return Length(value, m.group(2))
 
 
-def _astropy_units():
-    """`astropy.units` where astropy has been imported (a Quantity can exist only
-    then), else None: astropy is an optional extra and is not imported here."""
-    return sys.modules.get("astropy.units")
-
-
-def is_quantity(x) -> bool:
-    """Whether `x` is an `astropy.units.Quantity`."""
-    u = _astropy_units()
-    return u is not None and isinstance(x, u.Quantity)
-
-
 def _plain(x, name: str, unit: str) -> float:
     """`x` as a positive, finite float, or a `ValueError` naming `name` and `unit`."""
     try:
@@ -114,31 +111,17 @@ def _plain(x, name: str, unit: str) -> float:
     return v
 
 
-def _in_unit(x, name: str, unit, plain: str, kind: str) -> float:
-    """`x` as a positive, finite float in `plain` units: an astropy `Quantity`
-    converted to `unit(astropy.units)`, a plain number taken as it is; a `ValueError`
-    naming `name` and the `kind` of quantity expected otherwise."""
-    if is_quantity(x):
-        u = _astropy_units()
-        try:
-            x = x.to_value(unit(u))
-        except u.UnitConversionError:
-            raise ValueError(f"{name}={x!r} is not a {kind} (give {plain}, or a Quantity "
-                             f"in a unit of {kind})") from None  # fmt: skip
-    return _plain(x, name, plain)
-
-
 def to_metres(x, *, name: str = "distance") -> float:
     """A length as a float in metres: an astropy length `Quantity` converted, a plain
     number taken as metres. Positive and finite, else a `ValueError` naming `name`."""
-    return _in_unit(x, name, lambda u: u.m, "metres", "length")
+    return _plain(metres(x, name), name, "metres")
 
 
 def to_solar_masses(x, *, name: str = "mass") -> float:
     """A mass as a float in solar masses: an astropy mass `Quantity` converted (at the
     nominal solar mass, `u.M_sun`), a plain number taken as solar masses. Positive and
     finite, else a `ValueError` naming `name`."""
-    return _in_unit(x, name, lambda u: u.M_sun, "solar masses", "mass")
+    return _plain(solar_masses(x, name), name, "solar masses")
 
 
 def as_metres(value: float, quantity: bool):

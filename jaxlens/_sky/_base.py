@@ -25,6 +25,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .. import _limits
 from .._camera import rotate, rotation_matrix
 from .._fastmath import arctan2
+from .._units import angle
 from .._util import concrete as _concrete, has_tracer
 
 
@@ -150,8 +151,10 @@ def angular_distance(n: Float[Array, "... 3"], s: Float[ArrayLike, "3"]) -> Floa
 
 
 def direction_from_angles(lon: ArrayLike, lat: ArrayLike) -> Float[Array, "... 3"]:
-    """Unit vector at longitude `lon`, latitude `lat` (radians); (0, 0) is $+z$,
-    behind the hole; longitude grows toward $+x$, latitude toward $+y$."""
+    """Unit vector at longitude `lon`, latitude `lat` (radians, or astropy angle
+    Quantities); (0, 0) is $+z$, behind the hole; longitude grows toward $+x$,
+    latitude toward $+y$."""
+    lon, lat = angle(lon, "lon"), angle(lat, "lat")
     dtype = jnp.result_type(float, lon, lat)
     # Values known now are computed on the host: each eager jnp operation would compile.
     host = not has_tracer(lon, lat)

@@ -11,7 +11,7 @@ from jaxtyping import Array, Float
 
 from .. import _limits, _schema
 from .._color import _lookup
-from .._limits import real
+from .._limits import radians, real
 from .._schema import Key, anything
 from ._base import AbstractSky, angular_distance, direction_from_angles
 from ._table import bad_value, check_star_lists, star_directions, star_list_keys, value_range
@@ -24,9 +24,9 @@ class BlackbodyStars(AbstractSky):
     temperature, luminance $A_i$ at rest.
 
     **Fields:** `directions (N, 3)` (world unit vectors; given as finite non-zero
-    vectors of any length), `sigma (N,)` (radians, in $(0, \\pi)$), `brightness (N,)`
-    (peak luminance at rest, finite, at most 1e30 in magnitude), `temperature (N,)`
-    (K, finite and > 0).
+    vectors of any length), `sigma (N,)` (radians or an astropy angle, in
+    $(0, \\pi)$), `brightness (N,)` (peak luminance at rest, finite, at most 1e30 in
+    magnitude), `temperature (N,)` (K, finite and > 0).
     """
 
     directions: Float[Array, "N 3"]
@@ -46,15 +46,16 @@ class BlackbodyStars(AbstractSky):
             raise ValueError(f"directions has shape {d.shape}; expected (N, 3) with N >= 1")
         n = d.shape[0]
         self.directions = unit_rows(d)
-        self.sigma = jnp.broadcast_to(real("sigma", sigma), (n,))
+        self.sigma = jnp.broadcast_to(radians("sigma", sigma), (n,))
         self.brightness = jnp.broadcast_to(real("brightness", brightness), (n,))
         self.temperature = jnp.broadcast_to(real("temperature", temperature), (n,))
 
     @classmethod
     def from_angles(cls, lon, lat, sigma, brightness=1.0, temperature=5800.0):
-        """Stars at longitudes `lon`, latitudes `lat` (radians; `direction_from_angles`)."""
+        """Stars at longitudes `lon`, latitudes `lat` (radians or astropy angles;
+        `direction_from_angles`)."""
         d = direction_from_angles(
-            jnp.atleast_1d(real("lon", lon)), jnp.atleast_1d(real("lat", lat))
+            jnp.atleast_1d(radians("lon", lon)), jnp.atleast_1d(radians("lat", lat))
         )
         return cls(d, sigma, brightness, temperature)
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .. import _limits, _schema
-from .._limits import real
+from .._limits import radians, real
 from .._schema import Key, in_range
 from ._base import AbstractRGBSky, angles_from_direction, unrotate
 from ._table import BRIGHTNESS, ORIENTATION, orientation
@@ -22,8 +22,8 @@ class Checker(AbstractRGBSky):
     alternating, with thin white lines on the equator and the prime meridian.
 
     **Fields:** `n_lon`, `n_lat` (static, squares around and pole to pole),
-    `brightness` (a scale in [0, 1e30]), `yaw`, `pitch`, `roll` (radians, finite, as
-    `Rotated`).
+    `brightness` (a scale in [0, 1e30]), `yaw`, `pitch`, `roll` (radians or astropy
+    angles, finite, as `Rotated`).
     """
 
     n_lon: int = eqx.field(static=True)
@@ -38,7 +38,8 @@ class Checker(AbstractRGBSky):
                  roll=0.0):  # fmt: skip
         self.n_lon, self.n_lat = int(n_lon), int(n_lat)
         self.brightness = real("brightness", brightness)
-        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
+        self.yaw, self.pitch = radians("yaw", yaw), radians("pitch", pitch)
+        self.roll = radians("roll", roll)
 
     def __check_init__(self):
         if self.n_lon < 1 or self.n_lat < 1:

@@ -10,7 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import _limits, _schema
 from .._io import read_image
-from .._limits import real
+from .._limits import radians, real
 from ._base import AbstractRGBSky, angles_from_direction, bilinear, to_rgb, unrotate
 from ._table import BRIGHTNESS, IMAGE_PATH, ORIENTATION, orientation
 
@@ -38,7 +38,7 @@ class Panorama(AbstractRGBSky):
 
     **Fields:** `texels (h + 2, w + 1, 3)`: the image in linear radiance, framed for
     the look-up (`image` gives it back; finite); `brightness` (scale, in [0, 1e30]),
-    `yaw`, `pitch`, `roll` (radians, finite: the panorama's orientation, the old
+    `yaw`, `pitch`, `roll` (radians or astropy angles, finite: the panorama's orientation, the old
     programs' "offset"; see `Rotated`).
     """
 
@@ -60,7 +60,8 @@ class Panorama(AbstractRGBSky):
             image = jnp.asarray(to_rgb(image, name="panorama image"))
         self.texels = _panorama_texels(image)
         self.brightness = real("brightness", brightness)
-        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
+        self.yaw, self.pitch = radians("yaw", yaw), radians("pitch", pitch)
+        self.roll = radians("roll", roll)
 
     @property
     def image(self) -> Float[Array, "h w 3"]:

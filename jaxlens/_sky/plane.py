@@ -11,7 +11,7 @@ from jaxtyping import Array, Float
 
 from .. import _limits, _schema
 from .._io import read_image
-from .._limits import real
+from .._limits import radians, real
 from .._messages import describe
 from .._schema import Key, greater, in_range
 from .._util import concrete as _concrete
@@ -32,9 +32,10 @@ class PlaneImage(AbstractRGBSky):
     `source_distance=L` at its crossing of the sphere $r = L$, off by about
     $(\\rho/L)^2 b/2$ at a point $\\rho$ from the axis.
 
-    **Fields:** `image (h, w, 3)` linear radiance (finite), `width` (radians, full
-    horizontal angle, in $(0, \\pi)$), `brightness` (scale, in [0, 1e30]), `yaw`,
-    `pitch`, `roll` (radians, finite, as `Rotated`).
+    **Fields:** `image (h, w, 3)` linear radiance (finite), `width` (radians or an
+    astropy angle, full horizontal angle, in $(0, \\pi)$), `brightness` (scale, in
+    [0, 1e30]), `yaw`, `pitch`, `roll` (radians or astropy angles, finite, as
+    `Rotated`).
     """
 
     image: Float[Array, "h w 3"]
@@ -55,9 +56,10 @@ class PlaneImage(AbstractRGBSky):
             self.image = image
         else:
             self.image = jnp.asarray(to_rgb(image, name="plane image"))
-        self.width = real("width", width)
+        self.width = radians("width", width)
         self.brightness = real("brightness", brightness)
-        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
+        self.yaw, self.pitch = radians("yaw", yaw), radians("pitch", pitch)
+        self.roll = radians("roll", roll)
 
     def __check_init__(self):
         wv = _concrete(self.width)

@@ -6,7 +6,7 @@ from jaxtyping import Array, Float
 
 from .. import _limits
 from .._camera import rotate, rotation_matrix
-from .._limits import real
+from .._limits import radians
 from ._base import AbstractSky
 
 
@@ -15,7 +15,8 @@ class Rotated(AbstractSky):
     at direction $m$ appears at $R m$; with only yaw, the sky turns toward $+x$.
 
     **Fields:** `sky` (any `AbstractSky`; its spectrum, if any, is kept: `shifted`
-    turns the directions and asks it), `yaw`, `pitch`, `roll` (radians, finite).
+    turns the directions and asks it), `yaw`, `pitch`, `roll` (radians or astropy angles,
+    finite).
     """
 
     sky: AbstractSky
@@ -26,7 +27,8 @@ class Rotated(AbstractSky):
 
     def __init__(self, sky: AbstractSky, yaw=0.0, pitch=0.0, roll=0.0):
         self.sky = sky
-        self.yaw, self.pitch, self.roll = real("yaw", yaw), real("pitch", pitch), real("roll", roll)
+        self.yaw, self.pitch = radians("yaw", yaw), radians("pitch", pitch)
+        self.roll = radians("roll", roll)
 
     def __check_init__(self):
         if not isinstance(self.sky, AbstractSky):

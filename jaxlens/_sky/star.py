@@ -9,7 +9,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _limits, _schema
-from .._limits import real
+from .._limits import radians, real
 from .._messages import cut
 from .._schema import Key, anything
 from .._util import concrete as _concrete, to_device
@@ -20,13 +20,13 @@ from ._table import SIGMA
 class GaussianStar(AbstractCompactSky):
     """A star of Gaussian profile in angular distance $d$: $I = A e^{-d^2 / 2\\sigma^2}$.
 
-    **Fields:** `sigma` (radians, standard deviation in great-circle angle, in
+    **Fields:** `sigma` (radians or an astropy angle, standard deviation in great-circle angle, in
     $(0, \\pi)$), `brightness` $A$ (peak radiance, finite, at most 1e30 in magnitude:
     a fit may pass through negative values), `direction` (a finite non-zero 3-vector,
     need not be unit length; default $+z$, exactly behind the hole), `color` (RGB
     weights, as `brightness`).
 
-    Give the position either as `direction` or as `lon`, `lat` (radians; see
+    Give the position either as `direction` or as `lon`, `lat` (radians or astropy angles; see
     `direction_from_angles`).
     """
 
@@ -51,13 +51,13 @@ class GaussianStar(AbstractCompactSky):
         lon: ArrayLike | None = None,
         lat: ArrayLike | None = None,
     ):
-        self.sigma = real("sigma", sigma)
+        self.sigma = radians("sigma", sigma)
         self.brightness = real("brightness", brightness)
         if lon is not None or lat is not None:
             if direction is not None:
                 raise ValueError("give the star position as direction or as lon/lat, not both")
-            d = direction_from_angles(real("lon", 0.0 if lon is None else lon),
-                                      real("lat", 0.0 if lat is None else lat))  # fmt: skip
+            d = direction_from_angles(radians("lon", 0.0 if lon is None else lon),
+                                      radians("lat", 0.0 if lat is None else lat))  # fmt: skip
         else:
             d = real("direction", (0.0, 0.0, 1.0) if direction is None else direction)
             c = _concrete(d)

@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .. import _limits, _schema
 from .._fastmath import arctan2
-from .._limits import real
+from .._limits import radians, real
 from .._messages import describe
 from .._schema import Key, anything
 from .._util import concrete as _concrete
@@ -28,7 +28,7 @@ class StarField(AbstractRGBSky):
     up to a few hundred stars. The procedural `DefaultSky` holds millions.
 
     **Fields:** `directions (N, 3)` (unit vectors; given as finite non-zero vectors of
-    any length), `sigma (N,)` (radians, in $(0, \\pi)$), `brightness (N,)` (peak
+    any length), `sigma (N,)` (radians or an astropy angle, in $(0, \\pi)$), `brightness (N,)` (peak
     radiance) and `color (N, 3)` (RGB weights), both finite and at most 1e30 in
     magnitude; `block` (static).
     """
@@ -59,14 +59,16 @@ class StarField(AbstractRGBSky):
             raise ValueError(f"directions has shape {d.shape}; expected (N, 3) with N >= 1")
         n = d.shape[0]
         self.directions = unit_rows(d)
-        self.sigma = jnp.broadcast_to(real("sigma", sigma), (n,))
+        self.sigma = jnp.broadcast_to(radians("sigma", sigma), (n,))
         self.brightness = jnp.broadcast_to(real("brightness", brightness), (n,))
         self.color = jnp.broadcast_to(real("color", color), (n, 3))
         self.block = int(block)
 
     @classmethod
     def from_angles(cls, lon, lat, sigma, brightness=1.0, color=(1.0, 1.0, 1.0)) -> "StarField":
-        """Stars at longitudes `lon`, latitudes `lat` (radians, 1-D arrays)."""
+        """Stars at longitudes `lon`, latitudes `lat` (radians, or astropy angle
+        Quantities; 1-D arrays); `sigma` as the field."""
+        lon, lat = radians("lon", lon), radians("lat", lat)
         d = direction_from_angles(jnp.atleast_1d(lon), jnp.atleast_1d(lat))
         return cls(d, sigma, brightness, color)
 
