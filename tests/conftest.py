@@ -127,3 +127,31 @@ def jax_events():
                 unregister(listen)
 
     return record
+
+
+@pytest.fixture(scope="session")
+def wheel_site(tmp_path_factory):
+    """`(wheel, site)`: the wheel built from the repository (`pip wheel --no-deps`), and a
+    folder it is installed into (`pip install --no-deps --target`; its console scripts
+    in `site/bin`). Built once a session: tests/test_wheel.py and tests/test_readme.py
+    use it."""
+    import pathlib
+    import subprocess
+    import sys
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    folder = tmp_path_factory.mktemp("wheel")
+    wheels, site = folder / "wheels", folder / "site"
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(root)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert build.returncode == 0, build.stderr[-3000:]
+    (wheel,) = wheels.glob("jaxlens_bh-*.whl")
+    install = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site),
+         str(wheel)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert install.returncode == 0, install.stderr[-3000:]
+    return wheel, site

@@ -8,30 +8,14 @@ import subprocess
 import sys
 import textwrap
 import zipfile
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_wheel_works_outside_the_repository(tmp_path):
-    wheels = tmp_path / "wheels"
-    build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(ROOT)],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert build.returncode == 0, build.stderr[-3000:]
-    (wheel,) = wheels.glob("jaxlens_bh-*.whl")
+def test_wheel_works_outside_the_repository(tmp_path, wheel_site):
+    wheel, site = wheel_site  # built with pip and installed into a folder (conftest.py)
     names = zipfile.ZipFile(wheel).namelist()
     assert "jaxlens/_fit/ring_table_data.py" in names and "jaxlens/__main__.py" in names
     assert not [n for n in names if n.startswith(("tests/", "docs/", "notebooks/"))]
 
-    site = tmp_path / "site"
-    install = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site),
-         str(wheel)],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert install.returncode == 0, install.stderr[-3000:]
     away = tmp_path / "elsewhere"
     away.mkdir()
     # The wheel's copy first on the path (the repository's editable install comes later).
