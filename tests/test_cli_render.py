@@ -234,7 +234,6 @@ def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, extra, messa
 @pytest.mark.parametrize(
     "output,message",
     [
-        ("{tmp}/missing/o.png", "does not exist"),
         ("/sys/o.png", "not writable"),
         ("{tmp}/o.bmp", "unsupported extension '.bmp'"),
         ("{tmp}/o.gif", "jaxlens animate"),
