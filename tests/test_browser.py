@@ -5,8 +5,9 @@ moves, and say "rendering..." while a new sky compiles.
 
 Chromium is Playwright's own build (`python -m playwright install chromium`) or the
 system's (`chromium` on the PATH, or `$JAXLENS_CHROMIUM`); `make test` tries to install
-one (JAXLENS_NO_BROWSER=1 skips both). Without it the test is skipped and says so. With `$JAXLENS_SCREENSHOTS` set to a
-folder, the screenshots are saved there too (docs/images/explorer*.png come from it).
+one (JAXLENS_NO_BROWSER=1 skips both). Without it the test is skipped and says so.
+With `$JAXLENS_SCREENSHOTS` set to a folder, the screenshots are saved there too
+(docs/images/explorer*.png come from it).
 """
 
 import json
