@@ -67,6 +67,19 @@ def _unit_of(q) -> str:
     return q.unit.to_string() or "dimensionless"
 
 
+def _in(q, name: str, unit, kind: str, plain: str, units: str, equivalencies=None):
+    """The Quantity `q` as a number in `unit`, or a `ValueError` naming `name`: `q` is
+    not `kind`; give `plain` as a plain number, or a Quantity in `units`."""
+    u = astropy_units()
+    try:
+        return q.to_value(unit, equivalencies=equivalencies or [])
+    except u.UnitsError:
+        raise ValueError(
+            f"{name}={_shown(q)} is not {kind} ({q.unit.physical_type}): give {plain} as a "
+            f"plain number, or a Quantity in {units}"
+        ) from None
+
+
 def angle(x, name: str):
     """`x` in radians: an astropy angle Quantity converted (a dimensionless one taken
     as radians), anything else returned as it is. A Quantity of another dimension is
@@ -75,13 +88,8 @@ def angle(x, name: str):
     if q is None:
         return x
     u = astropy_units()
-    try:
-        return q.to_value(u.rad, equivalencies=u.dimensionless_angles())
-    except u.UnitsError:
-        raise ValueError(
-            f"{name}={_shown(q)} is not an angle ({q.unit.physical_type}): give radians "
-            "as a plain number, or a Quantity in an angle unit (u.deg, u.arcsec, u.rad)"
-        ) from None
+    return _in(q, name, u.rad, "an angle", "radians", "an angle unit (u.deg, u.arcsec, u.rad)",
+               u.dimensionless_angles())  # fmt: skip
 
 
 def length(x, name: str, mass_msun=None):
@@ -120,14 +128,8 @@ def solar_masses(x, name: str):
     q = _quantity(x)
     if q is None:
         return x
-    u = astropy_units()
-    try:
-        return q.to_value(u.M_sun)
-    except u.UnitsError:
-        raise ValueError(
-            f"{name}={_shown(q)} is not a mass ({q.unit.physical_type}): give solar "
-            "masses as a plain number, or a Quantity in a mass unit (u.kg, u.M_sun)"
-        ) from None
+    return _in(q, name, astropy_units().M_sun, "a mass", "solar masses",
+               "a mass unit (u.kg, u.M_sun)")  # fmt: skip
 
 
 def metres(x, name: str):
@@ -137,14 +139,8 @@ def metres(x, name: str):
     q = _quantity(x)
     if q is None:
         return x
-    u = astropy_units()
-    try:
-        return q.to_value(u.m)
-    except u.UnitsError:
-        raise ValueError(
-            f"{name}={_shown(q)} is not a length ({q.unit.physical_type}): give metres "
-            "as a plain number, or a Quantity in a length unit (u.km, u.pc)"
-        ) from None
+    return _in(q, name, astropy_units().m, "a length", "metres",
+               "a length unit (u.km, u.pc)")  # fmt: skip
 
 
 def plain(x, name: str, what: str):
